@@ -1,0 +1,127 @@
+"""Digital elevation model in the local NED world frame. Pure numpy/scipy/OpenCV, no file I/O
+(GeoTIFF loading is in ``companion.io.dem_file``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+
+@dataclass(frozen=True)
+class Dem:
+    """Elevation raster.
+
+    height_m: (rows, cols) float32 elevations above the world origin, up positive (so a ground
+        point's NED z is ``-height``). NaN marks holes (nodata).
+    Row 0 is the northernmost row; rows go south, columns go east (GeoTIFF order, north-up map).
+    north0_m, east0_m: world north and east of the centre of cell (0, 0). cell_m: cell size (m).
+    """
+
+    height_m: np.ndarray
+    north0_m: float
+    east0_m: float
+    cell_m: float
+
+    def __post_init__(self) -> None:
+        if self.height_m.ndim != 2:
+            raise ValueError(f"DEM heights must be 2-D, got shape {self.height_m.shape}")
+        if not self.cell_m > 0:
+            raise ValueError(f"DEM cell size must be > 0, got {self.cell_m}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.height_m.shape  # type: ignore[return-value]
+
+    def rc_from_ne(
+        self, north_m: np.ndarray | float, east_m: np.ndarray | float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Fractional (row, col) of world (north, east)."""
+        r = (self.north0_m - np.asarray(north_m, float)) / self.cell_m
+        c = (np.asarray(east_m, float) - self.east0_m) / self.cell_m
+        return r, c
+
+    def ne_from_rc(self, row: np.ndarray | float, col: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """World (north, east) of fractional (row, col)."""
+        n = self.north0_m - np.asarray(row, float) * self.cell_m
+        e = self.east0_m + np.asarray(col, float) * self.cell_m
+        return n, e
+
+    @property
+    def extent_ne(self) -> tuple[float, float, float, float]:
+        """(north_min, north_max, east_min, east_max) of the cell centres."""
+        rows, cols = self.shape
+        return (
+            self.north0_m - (rows - 1) * self.cell_m,
+            self.north0_m,
+            self.east0_m,
+            self.east0_m + (cols - 1) * self.cell_m,
+        )
+
+    def contains(self, north_m: float, east_m: float, margin_m: float = 0.0) -> bool:
+        n0, n1, e0, e1 = self.extent_ne
+        return (n0 + margin_m <= north_m <= n1 - margin_m) and (e0 + margin_m <= east_m <= e1 - margin_m)
+
+    def height_at(self, north_m: np.ndarray | float, east_m: np.ndarray | float) -> np.ndarray:
+        """Bilinear elevation at world (north, east); NaN off the raster or next to a hole."""
+        r, c = self.rc_from_ne(north_m, east_m)
+        r = np.atleast_1d(r).astype(np.float32)
+        c = np.atleast_1d(c).astype(np.float32)
+        shape = r.shape
+        out = cv2.remap(
+            self.height_m.astype(np.float32, copy=False),
+            c.reshape(1, -1),
+            r.reshape(1, -1),
+            interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=float("nan"),
+        ).reshape(shape)
+        rows, cols = self.shape
+        outside = (r < 0) | (c < 0) | (r > rows - 1) | (c > cols - 1)
+        out[outside] = np.nan
+        return out
+
+    def hole_fraction(self) -> float:
+        return float(np.isnan(self.height_m).mean())
+
+    def filled(self) -> Dem:
+        """Copy with holes filled from the nearest valid cell, then smoothed inside the holes."""
+        h = self.height_m
+        holes = np.isnan(h)
+        if not holes.any():
+            return self
+        if holes.all():
+            raise ValueError("DEM has no valid cell")
+        idx = ndimage.distance_transform_edt(holes, return_distances=False, return_indices=True)
+        f = h[tuple(idx)].astype(np.float32)
+        blurred = cv2.GaussianBlur(f, (0, 0), 2.0)
+        f[holes] = blurred[holes]
+        return Dem(f, self.north0_m, self.east0_m, self.cell_m)
+
+    def crop(self, north_m: float, east_m: float, half_size_m: float) -> Dem:
+        """Sub-raster of cells within ``half_size_m`` of (north, east), clipped to the raster."""
+        r, c = self.rc_from_ne(north_m, east_m)
+        k = int(np.ceil(half_size_m / self.cell_m))
+        rows, cols = self.shape
+        r0, r1 = max(int(np.floor(r)) - k, 0), min(int(np.ceil(r)) + k + 1, rows)
+        c0, c1 = max(int(np.floor(c)) - k, 0), min(int(np.ceil(c)) + k + 1, cols)
+        if r0 >= r1 or c0 >= c1:
+            raise ValueError(f"crop at N={north_m:.1f} E={east_m:.1f} lies off the DEM")
+        n0, e0 = self.ne_from_rc(r0, c0)
+        return Dem(self.height_m[r0:r1, c0:c1], float(n0), float(e0), self.cell_m)
+
+    def resampled(self, cell_m: float) -> Dem:
+        """Area-averaged (coarser) or bilinear (finer) resampling to about ``cell_m``, same extent.
+
+        The returned cell size is the exact one used (the extent is divided into whole cells)."""
+        rows, cols = self.shape
+        new_rows = max(int(round(rows * self.cell_m / cell_m)), 2)
+        new_cols = max(int(round(cols * self.cell_m / cell_m)), 2)
+        interp = cv2.INTER_AREA if cell_m > self.cell_m else cv2.INTER_LINEAR
+        h = cv2.resize(self.height_m.astype(np.float32), (new_cols, new_rows), interpolation=interp)
+        sx, sy = cols / new_cols, rows / new_rows
+        # cv2.resize maps destination pixel x to source x * s + 0.5 * s - 0.5 (pixel-centre convention)
+        n0, e0 = self.ne_from_rc(0.5 * sy - 0.5, 0.5 * sx - 0.5)
+        return Dem(h, float(n0), float(e0), self.cell_m * sx)

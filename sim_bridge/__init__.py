@@ -1,0 +1,1 @@
+"""Simulation bridge: terrains, renderers, trajectories and IMU, the simulated autopilot, replay."""
