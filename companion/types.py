@@ -8,7 +8,7 @@ autopilot are stamped on arrival in the same clock (their own boot-time stamp is
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from typing import Protocol
 
 import numpy as np
@@ -55,7 +55,7 @@ class AltimeterSample:
     range_m: float
 
 
-class EstimateStatus(str, Enum):
+class EstimateStatus(StrEnum):
     OK = "ok"
     INITIALISING = "initialising"
     LOST = "lost"

@@ -1,0 +1,217 @@
+"""Typed configuration, loaded once from TOML and validated at start-up.
+
+A bad file is refused with the key, the value and what was expected (``ConfigError``). Unknown keys are
+errors too, so a typo never silently falls back to a default. Angles are degrees here (configs are for
+people); the code converts to radians where it builds its options.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from companion.constants import R_BODY_CAM_NADIR
+from companion.geometry import CameraIntrinsics, rot_from_rpy
+
+
+class ConfigError(ValueError):
+    """A configuration file that cannot be used; the message names the key, value and expectation."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class OriginConfig(_Strict):
+    """Geodetic origin of the local NED world frame."""
+
+    lat_deg: Annotated[float, Field(ge=-90, le=90)]
+    lon_deg: Annotated[float, Field(ge=-180, le=180)]
+    alt_m: float = 0.0
+    planet: Literal["earth", "mars", "moon", "europa"] = "mars"
+
+
+class ZenohConfig(_Strict):
+    mode: Literal["peer", "client"] = "peer"
+    connect: list[str] = []
+    listen: list[str] = []
+    multicast_scouting: bool = False
+    status_key: str = "companion/status"
+
+
+class CameraConfig(_Strict):
+    """One camera: its Zenoh key (the ROS topic without the leading slash) and its geometry."""
+
+    key: str
+    message: Literal["image", "compressed"] = "image"
+    width: Annotated[int, Field(gt=0, le=10000)] = 480
+    height: Annotated[int, Field(gt=0, le=10000)] = 480
+    focal_mm: Annotated[float, Field(gt=0)] = 36.0
+    sensor_mm: Annotated[float, Field(gt=0)] = 36.0
+    mount: Literal["nadir"] = "nadir"
+    extra_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    position_in_body_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def intrinsics(self) -> CameraIntrinsics:
+        return CameraIntrinsics.from_focal_sensor(self.width, self.height, self.focal_mm, self.sensor_mm)
+
+    def R_body_cam(self) -> np.ndarray:
+        """Nadir mount, then an optional small mounting rotation (roll, pitch, yaw in the body frame)."""
+        extra = rot_from_rpy(*np.radians(self.extra_rpy_deg))
+        return extra @ R_BODY_CAM_NADIR
+
+
+class MavlinkConfig(_Strict):
+    connection: str = "udpout:127.0.0.1:14550"
+    sysid: Annotated[int, Field(ge=1, le=255)] = 1
+    compid: Annotated[int, Field(ge=1, le=255)] = 197
+    message: Literal["vision_position_estimate", "odometry"] = "vision_position_estimate"
+    max_rate_hz: Annotated[float, Field(gt=0, le=50)] = 30.0
+    signing_key_hex: str = ""
+    set_origin_if_missing: bool = True
+    link_timeout_s: Annotated[float, Field(gt=0)] = 3.0
+
+    @field_validator("connection")
+    @classmethod
+    def _connection(cls, v: str) -> str:
+        kinds = ("udpin:", "udpout:", "udp:", "tcp:", "tcpin:", "serial:")
+        if not v.startswith(kinds):
+            raise ValueError(f"must start with one of {', '.join(kinds)} (e.g. serial:/dev/ttyAMA0:921600)")
+        return v
+
+    @field_validator("signing_key_hex")
+    @classmethod
+    def _key(cls, v: str) -> str:
+        if v and (len(v) != 64 or any(c not in "0123456789abcdefABCDEF" for c in v)):
+            raise ValueError("must be empty or 64 hex digits (a 32-byte MAVLink 2 signing key)")
+        return v
+
+
+class SunConfig(_Strict):
+    """Presumed lighting for the reference shading (paper 1: intensity 10, azimuth 0, elevation 60)."""
+
+    intensity: Annotated[float, Field(gt=0)] = 10.0
+    azimuth_deg: float = 0.0
+    elevation_deg: Annotated[float, Field(ge=-90, le=90)] = 60.0
+
+
+class DemConfig(_Strict):
+    """The DEM the estimator uses: a GeoTIFF or an .npz written by sim_bridge."""
+
+    path: str
+    origin_east_m: float | None = None
+    origin_north_m: float | None = None
+    origin_alt_m: float = 0.0
+
+
+class GeorefEstimatorConfig(_Strict):
+    min_quality: Annotated[float, Field(ge=0, le=1)] = 0.0
+    attitude_sigma_deg: Annotated[float, Field(gt=0)] = 2.0
+    max_coast_s: Annotated[float, Field(gt=0)] = 2.0
+
+
+class TerrainLbaConfig(_Strict):
+    window_size: Annotated[int, Field(ge=2, le=100)] = 15
+    w_geo: Annotated[float, Field(ge=0)] = 10.0
+    min_frames_between_kf: Annotated[int, Field(ge=1)] = 20
+    min_features_kf: Annotated[int, Field(ge=1)] = 50
+    max_tracked_ratio_kf: Annotated[float, Field(gt=0, le=1)] = 0.9
+
+
+class EkfConfig(_Strict):
+    mode: Literal["visible", "thermal", "dual"] = "dual"
+    max_landmarks_per_camera: Annotated[int, Field(ge=4, le=256)] = 32
+    sampling: Literal["kde", "uniform"] = "kde"
+    pair_tolerance_ms: Annotated[float, Field(gt=0)] = 5.0
+
+
+class EstimatorConfig(_Strict):
+    kind: Literal["georef", "terrain_lba", "vis_thermal_ekf"] = "georef"
+    initial_position_ned_m: tuple[float, float, float] | None = None
+    initial_yaw_deg: float = 0.0
+    georef: GeorefEstimatorConfig = GeorefEstimatorConfig()
+    terrain_lba: TerrainLbaConfig = TerrainLbaConfig()
+    ekf: EkfConfig = EkfConfig()
+
+
+class DaemonConfig(_Strict):
+    status_period_s: Annotated[float, Field(gt=0)] = 1.0
+    max_frame_age_ms: Annotated[float, Field(gt=0)] = 500.0
+    max_future_ms: Annotated[float, Field(gt=0)] = 200.0
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+
+class CompanionConfig(_Strict):
+    """The whole companion configuration (one TOML file)."""
+
+    name: str = "companion"
+    origin: OriginConfig | None = None
+    zenoh: ZenohConfig = ZenohConfig()
+    cameras: dict[str, CameraConfig]
+    mavlink: MavlinkConfig = MavlinkConfig()
+    estimator: EstimatorConfig = EstimatorConfig()
+    dem: DemConfig | None = None
+    sun: SunConfig = SunConfig()
+    daemon: DaemonConfig = DaemonConfig()
+
+    @model_validator(mode="after")
+    def _consistent(self) -> CompanionConfig:
+        kind = self.estimator.kind
+        if kind in ("georef", "terrain_lba"):
+            if "nadir" not in self.cameras:
+                raise ValueError(f"estimator.kind = {kind!r} needs a [cameras.nadir] section")
+            if self.dem is None:
+                raise ValueError(f"estimator.kind = {kind!r} needs a [dem] section with the terrain model")
+        if kind == "vis_thermal_ekf":
+            need = {"visible": ["visible"], "thermal": ["thermal"], "dual": ["visible", "thermal"]}
+            for cam in need[self.estimator.ekf.mode]:
+                if cam not in self.cameras:
+                    raise ValueError(
+                        f"estimator.ekf.mode = {self.estimator.ekf.mode!r} needs a [cameras.{cam}] section"
+                    )
+        return self
+
+
+def _format_errors(err: ValidationError, source: str) -> str:
+    lines = [f"{source}: invalid configuration"]
+    for e in err.errors():
+        key = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        if e["type"] == "extra_forbidden":
+            lines.append(f"  {key} = {e.get('input')!r}: unknown key (check the spelling)")
+        elif e["type"] == "missing":
+            lines.append(f"  {key}: required key is missing")
+        else:
+            lines.append(f"  {key} = {e.get('input')!r}: {e['msg']}")
+    return "\n".join(lines)
+
+
+def parse_config(data: dict[str, Any], source: str = "<config>") -> CompanionConfig:
+    """Validate a parsed TOML document. Raises ConfigError with every problem listed."""
+    try:
+        return CompanionConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_errors(err, source)) from None
+
+
+def load_config(path: str | Path) -> CompanionConfig:
+    """Read and validate a TOML file. Raises ConfigError (missing file, bad TOML, bad values)."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read configuration: {e.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{p}: not valid TOML: {e}") from None
+    cfg = parse_config(data, str(p))
+    if cfg.dem is not None and not Path(cfg.dem.path).is_absolute():
+        # relative DEM paths are relative to the config file, so configs can travel with their data
+        cfg = cfg.model_copy(
+            update={"dem": cfg.dem.model_copy(update={"path": str(p.parent / cfg.dem.path)})}
+        )
+    return cfg

@@ -1,0 +1,261 @@
+"""The companion daemon: wiring, threads, health and clean start/stop.
+
+Threads (see docs/architecture.md):
+- Zenoh callback threads decode frames and ``put`` them in a ``FrameHandoff`` (latest wins, drops counted);
+- the MAVLink link's reader thread delivers attitude / IMU / altimeter samples into a bounded inbox;
+- the estimator thread takes a complete frame set, feeds the estimator the samples that arrived before it,
+  runs ``on_frames`` and sends the estimate (rate-capped) — one estimate per frame, sent as soon as it exists;
+- the status thread logs one line a second and publishes the same as JSON on Zenoh.
+Nothing upstream waits on anything downstream.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from companion.handoff import FrameHandoff
+from companion.types import AltimeterSample, AttitudeSample, Estimator, Frame, ImuSample, PoseEstimate
+
+log = logging.getLogger("companion")
+
+
+def now_us() -> int:
+    """The companion clock: Unix time in microseconds, the clock ROS 2 header stamps use."""
+    return time.time_ns() // 1000
+
+
+class AutopilotLink(Protocol):
+    """What the daemon needs from the MAVLink side (``companion.io.autopilot.AutopilotLinkAdapter``)."""
+
+    def start(self, on_attitude: Callable, on_imu: Callable, on_altimeter: Callable) -> None: ...
+
+    def send_estimate(self, estimate: PoseEstimate) -> str | None:
+        """Send; return None when sent, else the reason it was not (e.g. 'no_timesync', 'link_down')."""
+        ...
+
+    def status(self) -> dict[str, Any]: ...
+
+    def stop(self) -> None: ...
+
+
+@dataclass
+class DaemonCounters:
+    estimates: int = 0
+    sent: int = 0
+    not_sent: dict[str, int] = field(default_factory=dict)
+    estimator_errors: int = 0
+    samples_dropped: int = 0
+
+    def count_not_sent(self, reason: str) -> None:
+        self.not_sent[reason] = self.not_sent.get(reason, 0) + 1
+
+
+class LatencyWindow:
+    """Frame capture to send latency over the last N frames (ms)."""
+
+    def __init__(self, n: int = 500) -> None:
+        self._v: deque[float] = deque(maxlen=n)
+        self._lock = threading.Lock()
+
+    def add(self, ms: float) -> None:
+        with self._lock:
+            self._v.append(ms)
+
+    def percentiles(self) -> tuple[float, float]:
+        with self._lock:
+            if not self._v:
+                return float("nan"), float("nan")
+            a = np.fromiter(self._v, float)
+        return float(np.percentile(a, 50)), float(np.percentile(a, 99))
+
+
+class Daemon:
+    """Runs one estimator between a frame hand-off and an autopilot link."""
+
+    def __init__(
+        self,
+        estimator: Estimator,
+        handoff: FrameHandoff,
+        link: AutopilotLink,
+        *,
+        max_rate_hz: float = 30.0,
+        status_period_s: float = 1.0,
+        publish_status: Callable[[str], None] | None = None,
+        frame_counters: Callable[[], dict[str, Any]] | None = None,
+        inbox_size: int = 4096,
+    ) -> None:
+        self.estimator = estimator
+        self.handoff = handoff
+        self.link = link
+        self.min_interval_us = int(1e6 / max_rate_hz)
+        self.status_period_s = status_period_s
+        self.publish_status = publish_status
+        self.frame_counters = frame_counters or (lambda: {})
+        self.counters = DaemonCounters()
+        self.latency = LatencyWindow()
+        self._inbox: deque[AttitudeSample | ImuSample | AltimeterSample] = deque()
+        self._inbox_size = inbox_size
+        self._inbox_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._last_sent_stamp_us: int | None = None
+        self._last_quality = float("nan")
+        self._last_status = ""
+        self._rate_prev: tuple[float, int, int] | None = None
+        self.last_estimate: PoseEstimate | None = None
+
+    # -- inputs from the link thread -----------------------------------------------------------------
+    def _enqueue(self, sample: AttitudeSample | ImuSample | AltimeterSample) -> None:
+        with self._inbox_lock:
+            if len(self._inbox) >= self._inbox_size:
+                self._inbox.popleft()
+                self.counters.samples_dropped += 1
+            self._inbox.append(sample)
+
+    def _drain_inbox(self) -> None:
+        with self._inbox_lock:
+            items = list(self._inbox)
+            self._inbox.clear()
+        for s in sorted(items, key=lambda s: s.stamp_us):
+            if isinstance(s, AttitudeSample):
+                self.estimator.on_attitude(s)
+            elif isinstance(s, ImuSample):
+                self.estimator.on_imu(s)
+            else:
+                self.estimator.on_altimeter(s)
+
+    # -- lifecycle ----------------------------------------------------------------------------------
+    def start(self) -> None:
+        self.link.start(self._enqueue, self._enqueue, self._enqueue)
+        for target, name in ((self._estimator_loop, "estimator"), (self._status_loop, "status")):
+            t = threading.Thread(target=target, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
+        log.info("companion started: estimator cameras %s", ",".join(self.handoff.cameras))
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.handoff.wake()
+        for t in self._threads:
+            t.join(timeout=5.0)
+        self.link.stop()
+        try:
+            self.estimator.close()
+        except Exception:  # noqa: BLE001 - shutting down: log, never raise
+            log.exception("estimator close failed")
+        log.info("companion stopped: %s", self.status_line())
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    # -- the estimator thread -----------------------------------------------------------------------
+    def _estimator_loop(self) -> None:
+        while not self._stop.is_set():
+            frames = self.handoff.take(timeout_s=0.2)
+            if frames is None:
+                continue
+            self._drain_inbox()
+            self.process(frames)
+
+    def process(self, frames: dict[str, Frame]) -> PoseEstimate | None:
+        """Run the estimator on one frame set and send the result. Never raises."""
+        try:
+            est = self.estimator.on_frames(frames)
+        except Exception:  # noqa: BLE001 - bad input must not kill the daemon: count, log, go on
+            self.counters.estimator_errors += 1
+            log.exception("estimator failed on frame set at %s", {k: f.stamp_us for k, f in frames.items()})
+            return None
+        if est is None:
+            self.counters.count_not_sent("no_estimate")
+            return None
+        self.counters.estimates += 1
+        self.last_estimate = est
+        self._last_quality = est.quality
+        if not est.is_sendable():
+            self.counters.count_not_sent(
+                f"status_{est.status.value}" if est.status.value != "ok" else "not_finite"
+            )
+            return est
+        if (
+            self._last_sent_stamp_us is not None
+            and est.stamp_us - self._last_sent_stamp_us < self.min_interval_us
+        ):
+            # ArduPilot silently drops external-nav samples faster than its minimum interval: cap here
+            self.counters.count_not_sent("rate_cap")
+            return est
+        reason = self.link.send_estimate(est)
+        if reason is None:
+            self.counters.sent += 1
+            self._last_sent_stamp_us = est.stamp_us
+            capture_us = min(f.stamp_us for f in frames.values())
+            self.latency.add((now_us() - capture_us) / 1000.0)
+        else:
+            self.counters.count_not_sent(reason)
+        return est
+
+    # -- health ------------------------------------------------------------------------------------
+    def status(self) -> dict[str, Any]:
+        h = self.handoff.counters
+        p50, p99 = self.latency.percentiles()
+        t = time.monotonic()
+        fps_in = fps_out = float("nan")
+        if self._rate_prev is not None:
+            dt = t - self._rate_prev[0]
+            if dt > 0:
+                fps_in = (h.received - self._rate_prev[1]) / dt
+                fps_out = (self.counters.sent - self._rate_prev[2]) / dt
+        self._rate_prev = (t, h.received, self.counters.sent)
+        est = self.last_estimate
+        return {
+            "fps_in": fps_in,
+            "fps_out": fps_out,
+            "frames_received": h.received,
+            "frames_dropped_stale": h.dropped_stale,
+            "frames_dropped_unpaired": h.dropped_unpaired,
+            "estimates": self.counters.estimates,
+            "sent": self.counters.sent,
+            "not_sent": dict(self.counters.not_sent),
+            "estimator_errors": self.counters.estimator_errors,
+            "latency_p50_ms": p50,
+            "latency_p99_ms": p99,
+            "quality": self._last_quality,
+            "estimate_status": est.status.value if est is not None else "none",
+            "position_ned_m": None if est is None else [round(float(v), 2) for v in est.p_body_in_world_m],
+            "frames": self.frame_counters(),
+            "link": self.link.status(),
+        }
+
+    def status_line(self, st: dict[str, Any] | None = None) -> str:
+        st = self.status() if st is None else st
+        link = st["link"]
+        bad = sum(st["frames"].get("decode_errors", {}).values()) + sum(
+            st["frames"].get("stamp_rejects", {}).values()
+        )
+        return (
+            f"in {st['fps_in']:5.1f} fps  out {st['fps_out']:5.1f} fps  "
+            f"lat p50 {st['latency_p50_ms']:5.1f} ms p99 {st['latency_p99_ms']:5.1f} ms  "
+            f"drop {st['frames_dropped_stale']}  bad {bad}  q {st['quality']:.2f}  "
+            f"est {st['estimate_status']}  link {link.get('state', '?')}"
+            f"{'' if link.get('timesync', True) else ' (no timesync)'}"
+        )
+
+    def _status_loop(self) -> None:
+        while not self._stop.wait(self.status_period_s):
+            try:
+                st = self.status()
+                line = self.status_line(st)
+                log.info("%s", line)
+                if self.publish_status is not None:
+                    self.publish_status(json.dumps(st, default=float))
+            except Exception:  # noqa: BLE001 - health reporting must never stop the daemon
+                log.exception("status report failed")

@@ -1,0 +1,203 @@
+"""The ``georef`` estimator: every nadir frame geo-referenced against the DEM, fused by a
+constant-velocity Kalman filter (north, east) so that frames without a fix coast with a covariance that
+grows honestly, and wild fixes are gated. Height comes from the fix (eq. 18: DEM + height above ground),
+attitude from the autopilot. Pure math: no I/O.
+"""
+
+from __future__ import annotations
+
+from bisect import bisect_left
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.geometry import rot_from_rpy
+from companion.georef.georef import GeoFix, GeoReferencer
+from companion.types import (
+    AltimeterSample,
+    AttitudeSample,
+    EstimateStatus,
+    Frame,
+    ImuSample,
+    PoseEstimate,
+)
+
+
+@dataclass(frozen=True)
+class GeorefEstimatorOptions:
+    min_quality: float = 0.0  # extra gate on the phase-correlation peak, on top of the matcher's own
+    accel_sigma_mps2: float = 1.0  # white-acceleration process noise of the constant-velocity model
+    initial_sigma_m: float = 5.0  # horizontal uncertainty of the initial position (1 sigma)
+    initial_speed_sigma_mps: float = 2.0
+    gate_chi2: float = 13.8  # innovation gate (chi-square, 2 dof, p = 0.001)
+    reinit_after_rejections: int = 5  # consecutive gated fixes before re-initialising at the fix
+    max_coast_s: float = 2.0  # without an accepted fix for this long, the estimate is LOST
+    altitude_sigma_m: float = 1.0  # vertical 1-sigma of DEM + height above ground
+    attitude_sigma_rad: float = float(np.radians(2.0))  # we forward the autopilot's attitude; its 1-sigma
+
+
+@dataclass
+class _History:
+    """Recent timestamped samples for lookup at a frame's capture time."""
+
+    maxlen: int = 400
+    stamps: deque = field(default_factory=deque)
+    values: deque = field(default_factory=deque)
+
+    def add(self, stamp_us: int, value: object) -> None:
+        if self.stamps and stamp_us < self.stamps[-1]:
+            return  # out of order: keep the history monotonic
+        self.stamps.append(stamp_us)
+        self.values.append(value)
+        while len(self.stamps) > self.maxlen:
+            self.stamps.popleft()
+            self.values.popleft()
+
+    def nearest(self, stamp_us: int, max_gap_us: int) -> object | None:
+        if not self.stamps:
+            return None
+        stamps = list(self.stamps)
+        i = bisect_left(stamps, stamp_us)
+        best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp_us))
+        return self.values[best] if abs(stamps[best] - stamp_us) <= max_gap_us else None
+
+
+class GeorefEstimator:
+    """Implements ``companion.types.Estimator`` for a single nadir camera."""
+
+    cameras = ("nadir",)
+
+    def __init__(
+        self,
+        options: GeorefEstimatorOptions,
+        georeferencer: GeoReferencer,
+        initial_p_world: np.ndarray,
+        initial_yaw_rad: float = 0.0,
+    ) -> None:
+        self.opt = options
+        self.geo = georeferencer
+        self._x = np.array([initial_p_world[0], initial_p_world[1], 0.0, 0.0])  # n, e, vn, ve
+        self._P = np.diag([options.initial_sigma_m**2] * 2 + [options.initial_speed_sigma_mps**2] * 2)
+        self._z = float(initial_p_world[2])
+        self._initial_yaw = initial_yaw_rad
+        self._t_us: int | None = None
+        self._last_fix_us: int | None = None
+        self._rejections = 0
+        self.reset_counter = 0
+        self._attitude = _History()
+        self._range = _History()
+        self.counters = {"fixes": 0, "no_fix": 0, "gated": 0, "reinit": 0}
+        self.no_fix_reasons: dict[str, int] = {}
+
+    # -- inputs from the autopilot ------------------------------------------------------------------
+    def on_attitude(self, s: AttitudeSample) -> None:
+        self._attitude.add(s.stamp_us, np.array([s.roll_rad, s.pitch_rad, s.yaw_rad]))
+
+    def on_imu(self, s: ImuSample) -> None:
+        """Not used by this estimator (the constant-velocity model needs no IMU)."""
+
+    def on_altimeter(self, s: AltimeterSample) -> None:
+        if np.isfinite(s.range_m) and s.range_m > 0:
+            self._range.add(s.stamp_us, float(s.range_m))
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+    # -- the filter --------------------------------------------------------------------------------
+    def _predict(self, t_us: int) -> None:
+        if self._t_us is None:
+            self._t_us = t_us
+            return
+        dt = (t_us - self._t_us) * 1e-6
+        if dt <= 0:
+            return
+        F = np.eye(4)
+        F[0, 2] = F[1, 3] = dt
+        q = self.opt.accel_sigma_mps2**2
+        Q1 = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+        Q = np.zeros((4, 4))
+        Q[np.ix_([0, 2], [0, 2])] = Q1
+        Q[np.ix_([1, 3], [1, 3])] = Q1
+        self._x = F @ self._x
+        self._P = F @ self._P @ F.T + Q
+        self._t_us = t_us
+
+    def _update(self, fix: GeoFix) -> bool:
+        H = np.zeros((2, 4))
+        H[0, 0] = H[1, 1] = 1.0
+        y = fix.p_world[:2] - self._x[:2]
+        S = self._P[:2, :2] + fix.cov_ne_m2
+        d2 = float(y @ np.linalg.solve(S, y))
+        if d2 > self.opt.gate_chi2:
+            self._rejections += 1
+            self.counters["gated"] += 1
+            if self._rejections < self.opt.reinit_after_rejections:
+                return False
+            # the fixes agree with each other and not with us: we are the ones who are wrong
+            self._x[:2] = fix.p_world[:2]
+            self._x[2:] = 0.0
+            self._P = np.diag(
+                [fix.cov_ne_m2[0, 0], fix.cov_ne_m2[1, 1]] + [self.opt.initial_speed_sigma_mps**2] * 2
+            )
+            self.reset_counter += 1
+            self.counters["reinit"] += 1
+            self._rejections = 0
+            return True
+        K = self._P @ H.T @ np.linalg.inv(S)
+        self._x = self._x + K @ y
+        self._P = (np.eye(4) - K @ H) @ self._P
+        self._P = 0.5 * (self._P + self._P.T)
+        self._rejections = 0
+        return True
+
+    def on_frames(self, frames: dict[str, Frame]) -> PoseEstimate | None:
+        frame = frames.get("nadir")
+        if frame is None:
+            return None
+        t = frame.stamp_us
+        rpy = self._attitude.nearest(t, max_gap_us=100_000)
+        if rpy is None:
+            rpy = np.array([0.0, 0.0, self._initial_yaw]) if self._last_fix_us is None else None
+        if rpy is None:
+            self.no_fix_reasons["no_attitude"] = self.no_fix_reasons.get("no_attitude", 0) + 1
+            return None
+        rpy = np.asarray(rpy, float)
+        R = rot_from_rpy(*rpy)
+        self._predict(t)
+        rng = self._range.nearest(t, max_gap_us=200_000)
+        # the altimeter ranges along body down; the fix wants vertical height above ground
+        agl = None if rng is None else float(rng) * float(R[2, 2])
+        p_pred = np.array([self._x[0], self._x[1], self._z])
+        fix = self.geo.locate(frame.image, R, p_pred, alt_agl_m=agl)
+        accepted = False
+        if fix.ok and fix.quality >= self.opt.min_quality:
+            accepted = self._update(fix)
+            if accepted:
+                self._z = float(fix.p_world[2])
+                self._last_fix_us = t
+                self.counters["fixes"] += 1
+        else:
+            reason = fix.reason or "low_quality"
+            self.no_fix_reasons[reason] = self.no_fix_reasons.get(reason, 0) + 1
+            self.counters["no_fix"] += 1
+        if self._last_fix_us is None:
+            status = EstimateStatus.INITIALISING
+        elif (t - self._last_fix_us) * 1e-6 > self.opt.max_coast_s:
+            status = EstimateStatus.LOST
+        else:
+            status = EstimateStatus.OK
+        cov = np.zeros((6, 6))
+        cov[:2, :2] = self._P[:2, :2]
+        cov[2, 2] = self.opt.altitude_sigma_m**2
+        cov[3:, 3:] = np.eye(3) * self.opt.attitude_sigma_rad**2
+        return PoseEstimate(
+            stamp_us=t,
+            p_body_in_world_m=np.array([self._x[0], self._x[1], self._z]),
+            rpy_rad=rpy,
+            covariance=cov,
+            reset_counter=self.reset_counter,
+            quality=float(fix.quality) if fix.ok else 0.0,
+            status=status,
+            info={"fix": accepted, "reason": fix.reason, "v_ne": self._x[2:].copy()},
+        )
