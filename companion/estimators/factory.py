@@ -1,0 +1,77 @@
+"""Build the configured estimator. Imports each estimator lazily, so a daemon running one estimator
+does not load the others' dependencies."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.config import CompanionConfig
+from companion.georef.shading import Sun
+from companion.types import Estimator
+
+
+def _initial_position(cfg: CompanionConfig) -> np.ndarray:
+    p = cfg.estimator.initial_position_ned_m
+    return np.zeros(3) if p is None else np.asarray(p, float)
+
+
+def load_configured_dem(cfg: CompanionConfig):
+    from companion.io.dem_store import load_dem
+
+    assert cfg.dem is not None
+    origin_en = None
+    if cfg.dem.origin_east_m is not None and cfg.dem.origin_north_m is not None:
+        origin_en = (cfg.dem.origin_east_m, cfg.dem.origin_north_m)
+    return load_dem(cfg.dem.path, origin_en=origin_en, origin_alt_m=cfg.dem.origin_alt_m)
+
+
+def build_estimator(cfg: CompanionConfig) -> Estimator:
+    """The estimator named by ``cfg.estimator.kind``, ready for frames."""
+    kind = cfg.estimator.kind
+    sun = Sun.from_degrees(cfg.sun.intensity, cfg.sun.azimuth_deg, cfg.sun.elevation_deg)
+    yaw0 = float(np.radians(cfg.estimator.initial_yaw_deg))
+    if kind == "georef":
+        from companion.estimators.georef_cv import GeorefEstimator, GeorefEstimatorOptions
+        from companion.georef.georef import GeoReferencer
+
+        cam = cfg.cameras["nadir"]
+        geo = GeoReferencer(load_configured_dem(cfg), sun, cam.intrinsics(), cam.R_body_cam())
+        g = cfg.estimator.georef
+        opt = GeorefEstimatorOptions(
+            min_quality=g.min_quality,
+            attitude_sigma_rad=float(np.radians(g.attitude_sigma_deg)),
+            max_coast_s=g.max_coast_s,
+        )
+        return GeorefEstimator(opt, geo, _initial_position(cfg), yaw0)
+    if kind == "terrain_lba":
+        from companion.estimators.terrain_lba import TerrainLbaEstimator, TerrainLbaOptions
+
+        cam = cfg.cameras["nadir"]
+        t = cfg.estimator.terrain_lba
+        opt = TerrainLbaOptions(
+            window_size=t.window_size,
+            w_geo=t.w_geo,
+            min_frames_between_kf=t.min_frames_between_kf,
+            min_features_kf=t.min_features_kf,
+            max_tracked_ratio_kf=t.max_tracked_ratio_kf,
+        )
+        return TerrainLbaEstimator(
+            opt, cam.intrinsics(), cam.R_body_cam(), load_configured_dem(cfg), sun, _initial_position(cfg), yaw0
+        )
+    if kind == "vis_thermal_ekf":
+        from companion.constants import GRAVITY_MPS2
+        from companion.estimators.vis_thermal_ekf import EkfOptions, VisThermalEkfEstimator
+
+        e = cfg.estimator.ekf
+        cams = {"visible": ("visible",), "thermal": ("thermal",), "dual": ("visible", "thermal")}[e.mode]
+        opt = EkfOptions(mode=e.mode, max_landmarks_per_camera=e.max_landmarks_per_camera, sampling=e.sampling)
+        planet = cfg.origin.planet if cfg.origin is not None else "europa"
+        return VisThermalEkfEstimator(
+            opt,
+            {c: cfg.cameras[c].intrinsics() for c in cams},
+            {c: cfg.cameras[c].R_body_cam() for c in cams},
+            _initial_position(cfg),
+            initial_rpy=np.array([0.0, 0.0, yaw0]),
+            gravity_mps2=GRAVITY_MPS2[planet],
+        )
+    raise ValueError(f"unknown estimator kind {kind!r}")
