@@ -69,6 +69,7 @@ class PoseEstimate:
     covariance: (6, 6) over (x, y, z, roll, pitch, yaw) in m^2 / rad^2, the estimator's own.
     reset_counter: bumped by the estimator whenever its estimate jumps (re-initialisation).
     quality: 0..1, the estimator's confidence (e.g. phase-correlation peak); for the status line.
+    v_world_mps / cov_v_world: optional velocity; ODOMETRY is only sent for estimates that have one.
     """
 
     stamp_us: int
@@ -79,6 +80,8 @@ class PoseEstimate:
     quality: float = 0.0
     status: EstimateStatus = EstimateStatus.OK
     info: dict = field(default_factory=dict)
+    v_world_mps: np.ndarray | None = None  # (3,) NED velocity, when the estimator has one (for ODOMETRY)
+    cov_v_world: np.ndarray | None = None  # (3, 3) its covariance, m^2/s^2
 
     def is_sendable(self) -> bool:
         """True when the estimate may go to the autopilot: status OK and all values finite."""

@@ -56,7 +56,13 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             max_tracked_ratio_kf=t.max_tracked_ratio_kf,
         )
         return TerrainLbaEstimator(
-            opt, cam.intrinsics(), cam.R_body_cam(), load_configured_dem(cfg), sun, _initial_position(cfg), yaw0
+            opt,
+            cam.intrinsics(),
+            cam.R_body_cam(),
+            load_configured_dem(cfg),
+            sun,
+            _initial_position(cfg),
+            yaw0,
         )
     if kind == "vis_thermal_ekf":
         from companion.constants import GRAVITY_MPS2
@@ -64,7 +70,9 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
 
         e = cfg.estimator.ekf
         cams = {"visible": ("visible",), "thermal": ("thermal",), "dual": ("visible", "thermal")}[e.mode]
-        opt = EkfOptions(mode=e.mode, max_landmarks_per_camera=e.max_landmarks_per_camera, sampling=e.sampling)
+        opt = EkfOptions(
+            mode=e.mode, max_landmarks_per_camera=e.max_landmarks_per_camera, sampling=e.sampling
+        )
         planet = cfg.origin.planet if cfg.origin is not None else "europa"
         return VisThermalEkfEstimator(
             opt,

@@ -199,5 +199,7 @@ class GeorefEstimator:
             reset_counter=self.reset_counter,
             quality=float(fix.quality) if fix.ok else 0.0,
             status=status,
-            info={"fix": accepted, "reason": fix.reason, "v_ne": self._x[2:].copy()},
+            info={"fix": accepted, "reason": fix.reason},
+            v_world_mps=np.array([self._x[2], self._x[3], 0.0]),
+            cov_v_world=np.diag([self._P[2, 2], self._P[3, 3], self.opt.altitude_sigma_m**2]),
         )

@@ -1,0 +1,171 @@
+"""Command line of the companion daemon.
+
+    companion run --config configs/sim_mars.toml [--set key=value ...]
+    companion check-config configs/sim_mars.toml
+
+``--set`` overrides one key of the file (dotted path, TOML/JSON value), e.g.
+``--set mavlink.connection='"serial:/dev/ttyAMA0:921600"'`` or ``--set estimator.kind='"georef"'``.
+Exit codes: 0 clean stop, 2 configuration error, 1 failure at start-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+import tomllib
+from typing import Any
+
+from companion.config import CompanionConfig, ConfigError, load_config, parse_config
+
+log = logging.getLogger("companion")
+
+
+def _parse_value(text: str) -> Any:
+    """A TOML value (``3``, ``"udpout:..."``, ``[1, 2]``, ``true``) or, failing that, JSON, else the bare string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        pass
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def apply_overrides(cfg: CompanionConfig, sets: list[str], source: str) -> CompanionConfig:
+    """Return ``cfg`` with ``key.path=value`` overrides applied and the result validated again."""
+    if not sets:
+        return cfg
+    data = cfg.model_dump(mode="python")
+    for item in sets:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected key.path=value")
+        key, text = item.split("=", 1)
+        node = data
+        parts = key.strip().split(".")
+        for p in parts[:-1]:
+            if not isinstance(node.get(p), dict):
+                node[p] = {} if node.get(p) is None else node[p]
+            node = node[p]
+        node[parts[-1]] = _parse_value(text)
+    return parse_config(data, f"{source} (with --set)")
+
+
+def _setup_logging(level: str) -> None:
+    logging.basicConfig(
+        level=getattr(logging, level.upper()),
+        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+def cmd_check(path: str, sets: list[str]) -> int:
+    cfg = apply_overrides(load_config(path), sets, path)
+    cams = ", ".join(f"{n} <- {c.key} ({c.width}x{c.height})" for n, c in cfg.cameras.items())
+    print(f"{path}: OK")
+    print(f"  estimator {cfg.estimator.kind}; cameras {cams}")
+    print(
+        f"  mavlink {cfg.mavlink.connection} as {cfg.mavlink.sysid}/{cfg.mavlink.compid}, {cfg.mavlink.message}"
+    )
+    print(f"  zenoh {cfg.zenoh.mode} connect {cfg.zenoh.connect} listen {cfg.zenoh.listen}")
+    if cfg.dem is not None:
+        print(f"  dem {cfg.dem.path}")
+    return 0
+
+
+def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
+    """Run the daemon until SIGINT/SIGTERM (or ``stop`` is set). Returns the exit code."""
+    from companion.daemon import Daemon
+    from companion.estimators.factory import build_estimator
+    from companion.handoff import FrameHandoff
+    from companion.io.autopilot import AutopilotLinkAdapter
+    from companion.io.frames import StampGate
+    from companion.io.zenoh_io import CameraTopic, FrameSubscriber, StatusPublisher, open_session
+
+    stop = stop or threading.Event()
+    estimator = build_estimator(cfg)
+    tol_us = int(cfg.estimator.ekf.pair_tolerance_ms * 1000)
+    handoff = FrameHandoff(tuple(estimator.cameras), pair_tolerance_us=tol_us)
+    link = AutopilotLinkAdapter(cfg.mavlink, cfg.origin)
+    z = cfg.zenoh
+    session = open_session(z.mode, z.connect, z.listen, z.multicast_scouting)
+    status_pub = StatusPublisher(session, z.status_key)
+    topics = {
+        name: CameraTopic(cfg.cameras[name].key, cfg.cameras[name].message == "compressed")
+        for name in estimator.cameras
+    }
+    d = cfg.daemon
+    subscriber = FrameSubscriber(
+        session,
+        topics,
+        stamp_gate=lambda: StampGate(
+            max_future_us=int(d.max_future_ms * 1000), max_age_us=int(d.max_frame_age_ms * 1000)
+        ),
+        sink=handoff.put,
+    )
+
+    def frame_counters() -> dict[str, Any]:
+        st = subscriber.stats()
+        return {
+            "decode_errors": {f"{cam}:{r}": n for cam, s in st.items() for r, n in s["errors"].items()},
+            "stamp_rejects": {},
+            "per_camera": st,
+        }
+
+    daemon = Daemon(
+        estimator,
+        handoff,
+        link,
+        max_rate_hz=cfg.mavlink.max_rate_hz,
+        status_period_s=d.status_period_s,
+        publish_status=lambda s: status_pub.publish(json.loads(s)),
+        frame_counters=frame_counters,
+    )
+
+    def on_signal(signum: int, _frame: object) -> None:
+        log.info("signal %s: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, on_signal)
+        signal.signal(signal.SIGTERM, on_signal)
+    daemon.start()
+    try:
+        stop.wait()
+    finally:
+        daemon.stop()
+        subscriber.close()
+        status_pub.close()
+        session.close()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="companion", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    pr = sub.add_parser("run", help="run the daemon")
+    pr.add_argument("--config", required=True, help="TOML configuration file")
+    pr.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one key")
+    pc = sub.add_parser("check-config", help="validate a configuration file and print a summary")
+    pc.add_argument("config")
+    pc.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    a = ap.parse_args(argv)
+    try:
+        if a.cmd == "check-config":
+            return cmd_check(a.config, a.set)
+        cfg = apply_overrides(load_config(a.config), a.set, a.config)
+    except ConfigError as e:
+        print(f"companion: {e}", file=sys.stderr)
+        return 2
+    _setup_logging(cfg.daemon.log_level)
+    try:
+        return cmd_run(cfg)
+    except (ValueError, OSError) as e:
+        log.error("cannot start: %s", e)
+        return 1

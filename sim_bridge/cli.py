@@ -1,0 +1,101 @@
+"""Command line of the simulator.
+
+- ``sim``: the simulated vehicle (autopilot + camera) as its own process, for a companion to fly with;
+- ``demo``: the README's main job — starts ``sim`` and ``companion run`` on loopback, shows progress,
+  prints the error table at the end (computed with evo) and writes a plot and TUM trajectories.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+from pathlib import Path
+
+from sim_bridge.sim import SimConfig
+
+
+def _add_sim_args(p: argparse.ArgumentParser) -> None:
+    d = SimConfig()
+    p.add_argument("--scene", default=d.scene_id, help="built-in Mars scene 01..09 (default %(default)s)")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--trajectory", default=d.trajectory, choices=["circular", "forward", "scanning"])
+    p.add_argument("--duration", type=float, default=d.duration_s, help="seconds (default %(default)s)")
+    p.add_argument("--speed", type=float, default=d.speed_mps, help="m/s (default %(default)s)")
+    p.add_argument("--height", type=float, default=d.height_agl_m, help="m above mean ground")
+    p.add_argument("--camera-rate", type=float, default=d.camera_rate_hz, help="Hz (default %(default)s)")
+
+
+def _sim_config(a: argparse.Namespace, **kw) -> SimConfig:
+    return SimConfig(
+        scene_id=a.scene,
+        seed=a.seed,
+        trajectory=a.trajectory,
+        duration_s=a.duration,
+        speed_mps=a.speed,
+        height_agl_m=a.height,
+        camera_rate_hz=a.camera_rate,
+        **kw,
+    )
+
+
+def cmd_sim(a: argparse.Namespace) -> int:
+    """Run the simulated vehicle; progress as JSON lines on stdout (the demo reads them)."""
+    from sim_bridge.sim import SimVehicle, save_result
+
+    cfg = _sim_config(
+        a,
+        zenoh_listen=tuple(a.zenoh_listen),
+        mavlink=a.mavlink,
+        camera_key=a.camera_key,
+        out_dir=a.out,
+        drop_every=a.drop_every,
+    )
+
+    def progress(rep: dict) -> None:
+        print(json.dumps({"progress": rep}), flush=True)
+
+    vehicle = SimVehicle(cfg, progress=progress)
+    signal.signal(signal.SIGTERM, lambda *_: vehicle.stop())
+    signal.signal(signal.SIGINT, lambda *_: vehicle.stop())
+    print(json.dumps({"ready": True, "distance_m": vehicle.traj.distance_m()}), flush=True)
+    res = vehicle.run()
+    summary = save_result(res, Path(cfg.out_dir), cfg, vehicle.traj)
+    print(json.dumps({"done": summary}), flush=True)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="sim_bridge", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    ps = sub.add_parser("sim", help="run the simulated autopilot + camera")
+    _add_sim_args(ps)
+    ps.add_argument("--zenoh-listen", action="append", default=None, help="Zenoh endpoint to listen on")
+    ps.add_argument(
+        "--mavlink",
+        default=SimConfig().mavlink,
+        help="autopilot side: udpin:HOST:PORT, tcpin:..., serial:...",
+    )
+    ps.add_argument("--camera-key", default=SimConfig().camera_key)
+    ps.add_argument("--drop-every", type=int, default=0, help="skip publishing every n-th frame")
+    ps.add_argument("--out", default="runs/sim", help="directory for truth.tum, estimate.tum, summary")
+    pd = sub.add_parser("demo", help="fly the companion against the simulator on loopback (README main job)")
+    _add_sim_args(pd)
+    pd.add_argument("--estimator", default="georef", choices=["georef", "terrain_lba"])
+    pd.add_argument("--out", default=None, help="run directory (default runs/demo-<time>)")
+    pd.add_argument("--config", default="configs/sim_mars.toml", help="companion config template")
+    a = ap.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr
+    )
+    if a.cmd == "sim":
+        if a.zenoh_listen is None:
+            a.zenoh_listen = list(SimConfig().zenoh_listen)
+        return cmd_sim(a)
+    from sim_bridge.demo import run_demo
+
+    return run_demo(a)

@@ -1,0 +1,223 @@
+"""The README's main job: a simulated flight with the companion in the loop, all on loopback.
+
+Starts ``python -m sim_bridge sim`` (autopilot + camera) and ``python -m companion run`` as two processes,
+shows progress while they fly, then prints the error table (evo APE: mean / RMSE / max ...) and writes the
+trajectories (TUM) and a trajectory-vs-truth plot (PNG) into the run directory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.io.dem_store import save_dem_npz
+from sim_bridge.sim import SimConfig, make_trajectory
+
+
+def free_port(kind: int) -> int:
+    """A port the OS says is free right now on 127.0.0.1 (TCP or UDP)."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def ape_table(truth_tum: Path, est_tum: Path, max_diff_s: float = 0.02) -> dict[str, float]:
+    """Absolute position error statistics (metres) of the estimate against the truth, with evo.
+
+    No alignment: the estimate is in the world frame (geo-referenced), so any offset is an error.
+    """
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+
+    ref = file_interface.read_tum_trajectory_file(str(truth_tum))
+    est = file_interface.read_tum_trajectory_file(str(est_tum))
+    ref, est = sync.associate_trajectories(ref, est, max_diff=max_diff_s)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    stats = {k: float(v) for k, v in ape.get_all_statistics().items()}
+    stats["matched"] = int(est.num_poses)
+    return stats
+
+
+def plot(run_dir: Path, truth_tum: Path, est_tum: Path, title: str) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tr = np.loadtxt(truth_tum, ndmin=2)
+    es = np.loadtxt(est_tum, ndmin=2)
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 5.5))
+    ax1.plot(tr[:, 2], tr[:, 1], "k-", lw=1.5, label="truth")
+    if len(es):
+        ax1.plot(es[:, 2], es[:, 1], "r.", ms=2, label="companion estimate")
+    ax1.set_xlabel("east (m)")
+    ax1.set_ylabel("north (m)")
+    ax1.set_aspect("equal")
+    ax1.legend()
+    ax1.set_title(title)
+    if len(es):
+        p_truth = np.stack([np.interp(es[:, 0], tr[:, 0], tr[:, i]) for i in (1, 2, 3)], axis=1)
+        err = np.linalg.norm(es[:, 1:4] - p_truth, axis=1)
+        ax2.plot(es[:, 0], err, "r-", lw=0.8)
+    ax2.set_xlabel("time (s)")
+    ax2.set_ylabel("position error (m)")
+    ax2.grid(True, alpha=0.3)
+    fig.tight_layout()
+    out = run_dir / "trajectory.png"
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def run_demo(a: argparse.Namespace) -> int:
+    from sim_bridge.terrain import degrade_dem, make_scene
+
+    run_dir = Path(a.out or f"runs/demo-{time.strftime('%Y%m%d-%H%M%S')}").resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    zport, mport = free_port(socket.SOCK_STREAM), free_port(socket.SOCK_DGRAM)
+    print(f"run directory: {run_dir}", flush=True)
+    print(f"scene {a.scene}: generating terrain and the degraded DEM the companion gets ...", flush=True)
+    scene = make_scene(a.scene, seed=a.seed)
+    dem, degradation = degrade_dem(scene.dem, seed=a.seed + 7)
+    save_dem_npz(run_dir / "dem.npz", dem)
+    cfg = SimConfig(
+        scene_id=a.scene,
+        seed=a.seed,
+        trajectory=a.trajectory,
+        duration_s=a.duration,
+        speed_mps=a.speed,
+        height_agl_m=a.height,
+        camera_rate_hz=a.camera_rate,
+    )
+    start = make_trajectory(cfg, float(np.nanmean(scene.dem.height_m))).state_at(0.0)
+    yaw0 = float(np.degrees(np.arctan2(start.R_world_body[1, 0], start.R_world_body[0, 0])))
+    p0 = [round(float(v), 3) for v in start.p_world]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    sim_cmd = [
+        sys.executable,
+        "-m",
+        "sim_bridge",
+        "sim",
+        "--scene",
+        a.scene,
+        "--seed",
+        str(a.seed),
+        "--trajectory",
+        a.trajectory,
+        "--duration",
+        str(a.duration),
+        "--speed",
+        str(a.speed),
+        "--height",
+        str(a.height),
+        "--camera-rate",
+        str(a.camera_rate),
+        "--zenoh-listen",
+        f"tcp/127.0.0.1:{zport}",
+        "--mavlink",
+        f"udpin:127.0.0.1:{mport}",
+        "--out",
+        str(run_dir),
+    ]
+    overrides = {
+        "zenoh.connect": [f"tcp/127.0.0.1:{zport}"],
+        "zenoh.listen": [],
+        "mavlink.connection": f"udpout:127.0.0.1:{mport}",
+        "dem.path": str(run_dir / "dem.npz"),
+        "estimator.kind": a.estimator,
+        "estimator.initial_position_ned_m": p0,
+        "estimator.initial_yaw_deg": round(yaw0, 3),
+        "cameras.nadir.key": cfg.camera_key,
+    }
+    comp_cmd = [sys.executable, "-m", "companion", "run", "--config", a.config]
+    for k, v in overrides.items():
+        comp_cmd += ["--set", f"{k}={json.dumps(v)}"]
+    sim_log = open(run_dir / "sim.log", "w")
+    comp_log = open(run_dir / "companion.log", "w")
+    sim = subprocess.Popen(sim_cmd, stdout=subprocess.PIPE, stderr=sim_log, text=True, env=env)
+    comp: subprocess.Popen | None = None
+    summary: dict[str, Any] | None = None
+    try:
+        assert sim.stdout is not None
+        for line in sim.stdout:
+            try:
+                msg = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if msg.get("ready"):
+                comp = subprocess.Popen(
+                    comp_cmd, stdout=comp_log, stderr=subprocess.STDOUT, text=True, env=env
+                )
+                print(
+                    f"flying: {a.trajectory} over scene {a.scene} ({scene.name}), {a.duration:.0f} s at "
+                    f"{a.speed} m/s, {a.height:.0f} m above ground, camera {a.camera_rate:g} Hz; "
+                    f"companion estimator: {a.estimator}",
+                    flush=True,
+                )
+            elif "progress" in msg:
+                p = msg["progress"]
+                err = p["last_error_m"]
+                err_s = f"{err:6.2f} m" if err == err else "   -   "
+                print(
+                    f"  t {p['t_s']:6.1f}/{p['duration_s']:.0f} s   frames {p['frames']:5d}   "
+                    f"estimates accepted {p['estimates']:5d}   rejected {p['rejected']:3d}   last error {err_s}",
+                    flush=True,
+                )
+                if comp is not None and comp.poll() is not None:
+                    print(
+                        f"companion exited early with code {comp.returncode}; see {run_dir / 'companion.log'}"
+                    )
+                    sim.send_signal(signal.SIGINT)
+            elif "done" in msg:
+                summary = msg["done"]
+        sim.wait(timeout=30)
+    finally:
+        if comp is not None and comp.poll() is None:
+            comp.send_signal(signal.SIGINT)
+            try:
+                comp.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                comp.kill()
+        if sim.poll() is None:
+            sim.kill()
+        sim_log.close()
+        comp_log.close()
+    if summary is None:
+        print(f"the simulator did not finish; see {run_dir / 'sim.log'}")
+        return 1
+    truth, est = run_dir / "truth.tum", run_dir / "estimate.tum"
+    published = summary["frames_published"]
+    accepted = summary["estimates_accepted"]
+    print()
+    print(f"DEM given to the companion: {degradation.describe()}")
+    print(
+        f"frames published {published}, estimates accepted by the autopilot {accepted} "
+        f"({100.0 * accepted / max(published, 1):.1f} %), rejected {summary['rejected']}, "
+        f"distance flown {summary['distance_m']:.0f} m"
+    )
+    if accepted == 0:
+        print("no estimate reached the autopilot: see companion.log")
+        return 1
+    stats = ape_table(truth, est)
+    (run_dir / "ape.json").write_text(json.dumps({"ape_m": stats, **summary}, indent=2))
+    png = plot(run_dir, truth, est, f"scene {a.scene} {a.trajectory}, {a.estimator}")
+    print()
+    print("absolute position error (evo APE, translation, no alignment), metres")
+    print(f"{'estimates':>10} {'mean':>8} {'median':>8} {'rmse':>8} {'max':>8} {'std':>8}")
+    print(
+        f"{stats['matched']:>10d} {stats['mean']:>8.3f} {stats['median']:>8.3f} {stats['rmse']:>8.3f} "
+        f"{stats['max']:>8.3f} {stats['std']:>8.3f}"
+    )
+    print(f"wrote {truth.name}, {est.name} (TUM), {png.name}, ape.json in {run_dir}")
+    return 0

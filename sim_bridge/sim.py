@@ -1,0 +1,240 @@
+"""The simulated vehicle: an ArduPilot-like autopilot and a nadir camera flying a trajectory over a
+built-in terrain, in real time, on loopback.
+
+- the autopilot side (``SimAutopilotLink``) sends telemetry from the truth with noise and bias, answers
+  TIMESYNC, holds an EKF origin and checks every VISION_POSITION_ESTIMATE / ODOMETRY as ArduPilot would;
+- the camera renders the frame at the true pose and publishes it on Zenoh as a ROS 2 ``sensor_msgs/Image``
+  (CDR), stamped with its capture time;
+- at the end, every accepted estimate is matched to the truth at its own timestamp (mapped back from the
+  autopilot clock), and both trajectories are written in TUM format with a summary.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.constants import GRAVITY_MPS2
+from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
+from companion.io.frames import encode_image
+from sim_bridge.autopilot_link import SimAutopilotLink, SimAutopilotOptions
+from sim_bridge.trajectory import Trajectory, circular, forward, scanning
+
+log = logging.getLogger("sim_bridge")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """One simulated flight. Distances in metres, rates in Hz, angles in degrees (as in the CLI)."""
+
+    scene_id: str = "08"
+    seed: int = 0
+    trajectory: str = "circular"  # circular | forward | scanning
+    duration_s: float = 120.0
+    speed_mps: float = 4.0
+    height_agl_m: float = 100.0
+    radius_m: float = 120.0
+    camera_rate_hz: float = 15.0
+    camera_key: str = "uav/camera/nadir"
+    zenoh_listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    mavlink: str = "udpin:127.0.0.1:14550"
+    origin_lat_lon_alt: tuple[float, float, float] = (18.4447, 77.4508, -2500.0)  # Jezero crater, Mars
+    out_dir: str = "runs/sim"
+    progress_period_s: float = 2.0
+    drop_every: int = 0  # publish only; skip every n-th frame (tests of dropped frames); 0 = none
+
+
+def make_trajectory(cfg: SimConfig, ground_m: float) -> Trajectory:
+    """Paper 1's trajectories centred on the scene, at ``height_agl_m`` above the mean ground."""
+    alt = ground_m + cfg.height_agl_m
+    g = GRAVITY_MPS2["mars"]
+    if cfg.trajectory == "circular":
+        return circular((0.0, 0.0), cfg.radius_m, alt, cfg.speed_mps, cfg.duration_s, gravity_mps2=g)
+    if cfg.trajectory == "forward":
+        start = (-0.5 * cfg.speed_mps * cfg.duration_s, 0.0)
+        return forward(start, 0.0, alt, cfg.speed_mps, cfg.duration_s, gravity_mps2=g)
+    if cfg.trajectory == "scanning":
+        return scanning((-100.0, -100.0), 200.0, 40.0, alt, cfg.speed_mps, cfg.duration_s, gravity_mps2=g)
+    raise ValueError(f"unknown trajectory {cfg.trajectory!r} (circular, forward, scanning)")
+
+
+@dataclass
+class SimResult:
+    """Truth and estimates after a flight. t_s: seconds since the flight started."""
+
+    truth_t_s: np.ndarray
+    truth_p: np.ndarray
+    est_t_s: np.ndarray
+    est_p: np.ndarray
+    est_rpy: np.ndarray
+    reset_counters: np.ndarray
+    frames_published: int
+    rejected: dict[str, int]
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def write_tum(path: Path, t_s: np.ndarray, p: np.ndarray, rpy: np.ndarray | None = None) -> None:
+    """TUM trajectory: ``t x y z qx qy qz qw`` per line (here x y z = north east down)."""
+    from scipy.spatial.transform import Rotation
+
+    if rpy is None:
+        q = np.tile([0.0, 0.0, 0.0, 1.0], (len(t_s), 1))
+    else:
+        q = Rotation.from_euler("ZYX", np.asarray(rpy)[:, ::-1]).as_quat()  # scipy quaternions are xyzw
+    with open(path, "w") as f:
+        for i in range(len(t_s)):
+            f.write(f"{t_s[i]:.6f} " + " ".join(f"{v:.6f}" for v in (*p[i], *q[i])) + "\n")
+
+
+class SimVehicle:
+    """Runs one flight in real time. ``run()`` blocks until the trajectory ends or ``stop()``."""
+
+    def __init__(self, cfg: SimConfig, progress: Callable[[dict[str, Any]], None] | None = None) -> None:
+        from sim_bridge.render import VisibleRenderer
+        from sim_bridge.terrain import make_scene
+
+        self.cfg = cfg
+        self.progress = progress
+        self.scene = make_scene(cfg.scene_id, seed=cfg.seed)
+        self.ground_m = float(np.nanmean(self.scene.dem.height_m))
+        self.traj = make_trajectory(cfg, self.ground_m)
+        self.intr = CameraIntrinsics.from_focal_sensor(480, 480, 36.0, 36.0)
+        self.renderer = VisibleRenderer(self.scene.dem, self.scene.albedo, self.scene.sun, self.intr)
+        self._stop = threading.Event()
+        self.t0_us: int | None = None
+        self.frames_published = 0
+        opts = SimAutopilotOptions(
+            planet="mars", origin=cfg.origin_lat_lon_alt, range_max_m=max(150.0, 2 * cfg.height_agl_m)
+        )
+        self.autopilot = SimAutopilotLink(
+            cfg.mavlink, truth=self._truth, options=opts, rng=np.random.default_rng(cfg.seed + 1)
+        )
+
+    # truth for the autopilot's telemetry, in the world clock (Unix us)
+    def _sim_t(self, t_us: int) -> float:
+        return 0.0 if self.t0_us is None else (t_us - self.t0_us) * 1e-6
+
+    def _truth(self, t_us: int) -> dict[str, Any]:
+        s = self.traj.state_at(self._sim_t(t_us))
+        R = s.R_world_body
+        ground = self.scene.dem.height_at(s.p_world[0], s.p_world[1])[0]
+        rng_m = (-s.p_world[2] - ground) / max(R[2, 2], 0.2) if np.isfinite(ground) else float("nan")
+        return {
+            "rpy_rad": rpy_from_rot(R),
+            "p_ned_m": s.p_world,
+            "v_ned_mps": s.v_world,
+            "range_m": float(rng_m),
+            "accel_body_mps2": R.T @ (s.a_world - self.traj.g_world),
+            "gyro_body_rps": s.omega_body_rps,
+        }
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def run(self) -> SimResult:
+        from companion.io.zenoh_io import open_session
+
+        cfg = self.cfg
+        session = open_session(
+            mode="peer", connect=[], listen=list(cfg.zenoh_listen), multicast_scouting=False
+        )
+        publisher = session.declare_publisher(cfg.camera_key)
+        self.t0_us = time.time_ns() // 1000
+        self.autopilot.start()
+        period_us = int(1e6 / cfg.camera_rate_hz)
+        n_frames = int(self.traj.duration_s * cfg.camera_rate_hz)
+        next_progress = time.monotonic() + cfg.progress_period_s
+        late = 0
+        try:
+            for k in range(n_frames):
+                if self._stop.is_set():
+                    break
+                capture_us = self.t0_us + k * period_us
+                s = self.traj.state_at(k * period_us * 1e-6)
+                R_wc, p_c = camera_pose(s.R_world_body, s.p_world)
+                image = self.renderer.render(R_wc, p_c, seed=cfg.seed * 1_000_003 + k)
+                wait_s = (capture_us - time.time_ns() // 1000) * 1e-6
+                if wait_s > 0:
+                    time.sleep(wait_s)
+                else:
+                    late += 1
+                if cfg.drop_every and k % cfg.drop_every == cfg.drop_every - 1:
+                    continue
+                publisher.put(encode_image(image, capture_us, frame_id="nadir_camera", encoding="mono8"))
+                self.frames_published += 1
+                if self.progress is not None and time.monotonic() >= next_progress:
+                    next_progress += cfg.progress_period_s
+                    self.progress(self._progress_report(k * period_us * 1e-6))
+            time.sleep(0.5)  # let the last estimates arrive
+        finally:
+            self.autopilot.stop()
+            publisher.undeclare()
+            session.close()
+        if late:
+            log.warning("%d frames rendered later than their capture time", late)
+        return self._result()
+
+    def _progress_report(self, t_s: float) -> dict[str, Any]:
+        recs = self.autopilot.accepted()
+        err = float("nan")
+        if recs:
+            r = recs[-1]
+            t_est = self._sim_t(self._world_us(r.usec))
+            err = float(np.linalg.norm(r.p_ned_m[:2] - self.traj.state_at(t_est).p_world[:2]))
+        return {
+            "t_s": round(t_s, 1),
+            "duration_s": self.traj.duration_s,
+            "frames": self.frames_published,
+            "estimates": len(recs),
+            "rejected": sum(self.autopilot.rejected().values()),
+            "last_error_m": err,
+        }
+
+    def _world_us(self, autopilot_us: int) -> int:
+        """Map an autopilot-clock time back to the world clock (the simulator knows the true offset)."""
+        return int(autopilot_us - self.autopilot.true_offset_us())
+
+    def _result(self) -> SimResult:
+        recs = self.autopilot.accepted()
+        t_est = np.array([self._sim_t(self._world_us(r.usec)) for r in recs])
+        p_est = np.array([r.p_ned_m for r in recs]).reshape(-1, 3)
+        rpy_est = np.array([r.rpy_rad for r in recs]).reshape(-1, 3)
+        t_truth = np.arange(0.0, self.traj.duration_s, 1.0 / self.cfg.camera_rate_hz)
+        p_truth = np.array([s.p_world for s in self.traj.states(t_truth)])
+        return SimResult(
+            truth_t_s=t_truth,
+            truth_p=p_truth,
+            est_t_s=t_est,
+            est_p=p_est,
+            est_rpy=rpy_est,
+            reset_counters=np.array([r.reset_counter for r in recs], int),
+            frames_published=self.frames_published,
+            rejected=self.autopilot.rejected(),
+        )
+
+
+def save_result(res: SimResult, out_dir: Path, cfg: SimConfig, traj: Trajectory) -> dict[str, Any]:
+    """Write truth.tum, estimate.tum and sim_summary.json into ``out_dir``; return the summary."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    states = traj.states(res.truth_t_s)
+    rpy_truth = np.array([rpy_from_rot(s.R_world_body) for s in states])
+    write_tum(out_dir / "truth.tum", res.truth_t_s, res.truth_p, rpy_truth)
+    write_tum(out_dir / "estimate.tum", res.est_t_s, res.est_p, res.est_rpy if len(res.est_rpy) else None)
+    summary = {
+        "config": asdict(cfg),
+        "frames_published": res.frames_published,
+        "estimates_accepted": len(res.est_t_s),
+        "rejected": res.rejected,
+        "resets": int(res.reset_counters.max()) if len(res.reset_counters) else 0,
+        "distance_m": traj.distance_m(),
+    }
+    (out_dir / "sim_summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
