@@ -1,0 +1,100 @@
+"""Configuration: every shipped config validates; mistakes are refused with key, value and expectation."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.cli import apply_overrides
+from companion.config import ConfigError, load_config, parse_config
+
+ROOT = Path(__file__).resolve().parents[1]
+MINIMAL = {"cameras": {"nadir": {"key": "uav/camera/nadir"}}, "dem": {"path": "dem.npz"}}
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "configs").glob("*.toml")), ids=lambda p: p.name)
+def test_shipped_configs_validate(path: Path) -> None:
+    cfg = load_config(path)
+    assert cfg.cameras
+
+
+def test_typo_in_key_is_refused_with_its_name() -> None:
+    data = {**MINIMAL, "mavlink": {"conection": "udpout:127.0.0.1:14550"}}
+    with pytest.raises(ConfigError) as e:
+        parse_config(data, "x.toml")
+    assert "mavlink.conection" in str(e.value) and "unknown key" in str(e.value)
+
+
+def test_wrong_type_and_range_are_refused_with_value_and_expectation() -> None:
+    data = {**MINIMAL, "mavlink": {"max_rate_hz": 200}, "cameras": {"nadir": {"key": "k", "width": "wide"}}}
+    with pytest.raises(ConfigError) as e:
+        parse_config(data)
+    msg = str(e.value)
+    assert "mavlink.max_rate_hz = 200" in msg and "less than or equal to 50" in msg
+    assert "cameras.nadir.width = 'wide'" in msg
+
+
+def test_bad_connection_string_and_signing_key() -> None:
+    with pytest.raises(ConfigError, match="mavlink.connection"):
+        parse_config({**MINIMAL, "mavlink": {"connection": "com3"}})
+    with pytest.raises(ConfigError, match="64 hex digits"):
+        parse_config({**MINIMAL, "mavlink": {"signing_key_hex": "abc"}})
+
+
+def test_estimator_needs_its_cameras_and_dem() -> None:
+    with pytest.raises(ConfigError, match="needs a \\[dem\\]"):
+        parse_config({"cameras": {"nadir": {"key": "k"}}})
+    with pytest.raises(ConfigError, match="cameras.thermal"):
+        parse_config({"cameras": {"visible": {"key": "v"}}, "estimator": {"kind": "vis_thermal_ekf"}})
+
+
+def test_camera_geometry_from_config() -> None:
+    cfg = parse_config(MINIMAL)
+    intr = cfg.cameras["nadir"].intrinsics()
+    assert intr.fx == pytest.approx(480.0)
+    R = cfg.cameras["nadir"].R_body_cam()
+    # nadir: the optical axis is body down
+    np.testing.assert_allclose(R[:, 2], [0, 0, 1], atol=1e-12)
+
+
+def test_overrides_are_validated_too() -> None:
+    cfg = parse_config(MINIMAL)
+    cfg2 = apply_overrides(
+        cfg, ['mavlink.connection="tcp:127.0.0.1:5760"', "estimator.initial_yaw_deg=45"], "x"
+    )
+    assert cfg2.mavlink.connection == "tcp:127.0.0.1:5760" and cfg2.estimator.initial_yaw_deg == 45
+    with pytest.raises(ConfigError, match="mavlink.sysid"):
+        apply_overrides(cfg, ["mavlink.sysid=0"], "x")
+
+
+def test_cli_exits_2_with_a_clear_message(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[cameras.nadir]\nkey = "k"\nwidht = 480\n[dem]\npath = "d.npz"\n')
+    r = subprocess.run(
+        [sys.executable, "-m", "companion", "run", "--config", str(bad)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2
+    assert "cameras.nadir.widht" in r.stderr and "unknown key" in r.stderr
+    missing = subprocess.run(
+        [sys.executable, "-m", "companion", "run", "--config", str(tmp_path / "nope.toml")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert missing.returncode == 2 and "cannot read" in missing.stderr
+    notoml = tmp_path / "broken.toml"
+    notoml.write_text("[cameras\n")
+    r = subprocess.run(
+        [sys.executable, "-m", "companion", "check-config", str(notoml)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2 and "not valid TOML" in r.stderr
