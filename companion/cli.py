@@ -80,7 +80,7 @@ def cmd_check(path: str, sets: list[str]) -> int:
 def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     """Run the daemon until SIGINT/SIGTERM (or ``stop`` is set). Returns the exit code."""
     from companion.daemon import Daemon
-    from companion.estimators.factory import build_estimator
+    from companion.factory import build_estimator
     from companion.handoff import FrameHandoff
     from companion.io.autopilot import AutopilotLinkAdapter
     from companion.io.frames import StampGate
