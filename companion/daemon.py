@@ -238,13 +238,14 @@ class Daemon:
     def status_line(self, st: dict[str, Any] | None = None) -> str:
         st = self.status() if st is None else st
         link = st["link"]
-        bad = sum(st["frames"].get("decode_errors", {}).values()) + sum(
-            st["frames"].get("stamp_rejects", {}).values()
-        )
+        reasons = {**st["frames"].get("decode_errors", {}), **st["frames"].get("stamp_rejects", {})}
+        bad = sum(reasons.values())
+        bad_s = f"{bad}" + (f" ({', '.join(f'{k} {v}' for k, v in sorted(reasons.items()))})" if bad else "")
+        not_sent = sum(v for k, v in st["not_sent"].items() if k != "no_estimate")
         return (
             f"in {st['fps_in']:5.1f} fps  out {st['fps_out']:5.1f} fps  "
             f"lat p50 {st['latency_p50_ms']:5.1f} ms p99 {st['latency_p99_ms']:5.1f} ms  "
-            f"drop {st['frames_dropped_stale']}  bad {bad}  q {st['quality']:.2f}  "
+            f"drop {st['frames_dropped_stale']}  bad {bad_s}  unsent {not_sent}  q {st['quality']:.2f}  "
             f"est {st['estimate_status']}  link {link.get('state', '?')}"
             f"{'' if link.get('timesync', True) else ' (no timesync)'}"
         )

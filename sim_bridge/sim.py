@@ -77,6 +77,7 @@ class SimResult:
     est_rpy: np.ndarray
     reset_counters: np.ndarray
     frames_published: int
+    frames_skipped: int
     rejected: dict[str, int]
     summary: dict[str, Any] = field(default_factory=dict)
 
@@ -111,6 +112,7 @@ class SimVehicle:
         self._stop = threading.Event()
         self.t0_us: int | None = None
         self.frames_published = 0
+        self.frames_skipped = 0
         opts = SimAutopilotOptions(
             planet="mars", origin=cfg.origin_lat_lon_alt, range_max_m=max(150.0, 2 * cfg.height_agl_m)
         )
@@ -152,21 +154,26 @@ class SimVehicle:
         period_us = int(1e6 / cfg.camera_rate_hz)
         n_frames = int(self.traj.duration_s * cfg.camera_rate_hz)
         next_progress = time.monotonic() + cfg.progress_period_s
-        late = 0
+        skipped = 0
+        k = 0
         try:
-            for k in range(n_frames):
-                if self._stop.is_set():
-                    break
+            while k < n_frames and not self._stop.is_set():
+                # a camera that cannot keep up skips capture slots; it never stamps a frame late
+                due = (time.time_ns() // 1000 - self.t0_us + period_us - 1) // period_us
+                if due > k:
+                    skipped += int(min(due, n_frames) - k)
+                    k = int(due)
+                    if k >= n_frames:
+                        break
                 capture_us = self.t0_us + k * period_us
-                s = self.traj.state_at(k * period_us * 1e-6)
-                R_wc, p_c = camera_pose(s.R_world_body, s.p_world)
-                image = self.renderer.render(R_wc, p_c, seed=cfg.seed * 1_000_003 + k)
                 wait_s = (capture_us - time.time_ns() // 1000) * 1e-6
                 if wait_s > 0:
                     time.sleep(wait_s)
-                else:
-                    late += 1
-                if cfg.drop_every and k % cfg.drop_every == cfg.drop_every - 1:
+                s = self.traj.state_at(k * period_us * 1e-6)
+                R_wc, p_c = camera_pose(s.R_world_body, s.p_world)
+                image = self.renderer.render(R_wc, p_c, seed=cfg.seed * 1_000_003 + k)
+                k += 1
+                if cfg.drop_every and k % cfg.drop_every == 0:
                     continue
                 publisher.put(encode_image(image, capture_us, frame_id="nadir_camera", encoding="mono8"))
                 self.frames_published += 1
@@ -178,8 +185,13 @@ class SimVehicle:
             self.autopilot.stop()
             publisher.undeclare()
             session.close()
-        if late:
-            log.warning("%d frames rendered later than their capture time", late)
+        self.frames_skipped = skipped
+        if skipped:
+            log.warning(
+                "camera skipped %d of %d capture slots (renderer slower than the frame rate)",
+                skipped,
+                n_frames,
+            )
         return self._result()
 
     def _progress_report(self, t_s: float) -> dict[str, Any]:
@@ -217,6 +229,7 @@ class SimVehicle:
             est_rpy=rpy_est,
             reset_counters=np.array([r.reset_counter for r in recs], int),
             frames_published=self.frames_published,
+            frames_skipped=self.frames_skipped,
             rejected=self.autopilot.rejected(),
         )
 
@@ -231,6 +244,7 @@ def save_result(res: SimResult, out_dir: Path, cfg: SimConfig, traj: Trajectory)
     summary = {
         "config": asdict(cfg),
         "frames_published": res.frames_published,
+        "frames_skipped": res.frames_skipped,
         "estimates_accepted": len(res.est_t_s),
         "rejected": res.rejected,
         "resets": int(res.reset_counters.max()) if len(res.reset_counters) else 0,

@@ -1,0 +1,183 @@
+"""Daemon latency and sustained rate: frame capture to VISION_POSITION_ESTIMATE received by the autopilot.
+
+The real daemon runs as its own process (``python -m companion run``) against the simulated autopilot on
+UDP loopback, fed by Zenoh. Frames are rendered before the clock starts, so the renderer's cost is not
+counted; each is published at its capture time at the target rate. Latency = arrival time at the autopilot
+(its boot clock) minus the capture time the estimate carries (mapped to that clock through TIMESYNC).
+CPU per frame = the daemon process's user+system time over the run / frames it received.
+
+    python -m bench latency [--quick] [--json bench/results/latency.json] [--rate 50] [--estimator georef]
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import parser, table, write_json
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    return (int(fields[11]) + int(fields[12])) / ticks
+
+
+def run(rate_hz: float, duration_s: float, estimator: str, seed: int) -> dict:
+    from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
+    from companion.io.dem_store import save_dem_npz
+    from companion.io.frames import encode_image
+    from companion.io.zenoh_io import open_session
+    from sim_bridge.autopilot_link import SimAutopilotLink, SimAutopilotOptions
+    from sim_bridge.demo import free_port
+    from sim_bridge.render import VisibleRenderer
+    from sim_bridge.sim import SimConfig, make_trajectory
+    from sim_bridge.terrain import degrade_dem, make_scene
+
+    scene = make_scene("08", seed=seed)
+    dem, deg = degrade_dem(scene.dem, seed=seed + 7)
+    ground = float(np.nanmean(scene.dem.height_m))
+    cfg = SimConfig(duration_s=duration_s + 10.0, camera_rate_hz=rate_hz)
+    traj = make_trajectory(cfg, ground)
+    intr = CameraIntrinsics.from_focal_sensor(480, 480, 36.0, 36.0)
+    renderer = VisibleRenderer(scene.dem, scene.albedo, scene.sun, intr)
+    n = int(duration_s * rate_hz)
+    t_frames = np.arange(n) / rate_hz + 5.0  # start once the vehicle is at speed
+    states = traj.states(t_frames)
+    print(f"rendering {n} frames of 480x480 ...", flush=True)
+    images = []
+    for k, s in enumerate(states):
+        R_wc, p_c = camera_pose(s.R_world_body, s.p_world)
+        images.append(renderer.render(R_wc, p_c, seed=seed * 7919 + k))
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench-latency-"))
+    save_dem_npz(tmp / "dem.npz", dem)
+    zport, mport = free_port(socket.SOCK_STREAM), free_port(socket.SOCK_DGRAM)
+    t0_us = [0]
+
+    def truth(t_us: int) -> dict:
+        t = 5.0 + (t_us - t0_us[0]) * 1e-6 if t0_us[0] else 5.0
+        st = traj.state_at(t)
+        R = st.R_world_body
+        return {
+            "rpy_rad": rpy_from_rot(R),
+            "p_ned_m": st.p_world,
+            "v_ned_mps": st.v_world,
+            "range_m": float(
+                (-st.p_world[2] - scene.dem.height_at(st.p_world[0], st.p_world[1])[0]) / R[2, 2]
+            ),
+            "accel_body_mps2": R.T @ (st.a_world - traj.g_world),
+            "gyro_body_rps": st.omega_body_rps,
+        }
+
+    ap = SimAutopilotLink(
+        f"udpin:127.0.0.1:{mport}", truth=truth, options=SimAutopilotOptions(planet="mars", range_max_m=300.0)
+    )
+    session = open_session("peer", [], [f"tcp/127.0.0.1:{zport}"], False)
+    pub = session.declare_publisher("uav/camera/nadir")
+    s0 = states[0]
+    yaw0 = float(np.degrees(np.arctan2(s0.R_world_body[1, 0], s0.R_world_body[0, 0])))
+    overrides = {
+        "zenoh.connect": [f"tcp/127.0.0.1:{zport}"],
+        "mavlink.connection": f"udpout:127.0.0.1:{mport}",
+        "mavlink.max_rate_hz": min(rate_hz, 50.0),
+        "dem.path": str(tmp / "dem.npz"),
+        "estimator.kind": estimator,
+        "estimator.initial_position_ned_m": [float(v) for v in s0.p_world],
+        "estimator.initial_yaw_deg": yaw0,
+        "daemon.log_level": "warning",
+    }
+    cmd = [sys.executable, "-m", "companion", "run", "--config", str(ROOT / "configs/sim_mars.toml")]
+    for k, v in overrides.items():
+        cmd += ["--set", f"{k}={json.dumps(v)}"]
+    log = open(tmp / "companion.log", "w")
+    ap.start()
+    comp = subprocess.Popen(
+        cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, OMP_NUM_THREADS="1")
+    )
+    try:
+        time.sleep(4.0)  # Zenoh connect, TIMESYNC convergence, DEM load
+        cpu0 = _cpu_s(comp.pid)
+        t0_us[0] = time.time_ns() // 1000
+        period_us = int(1e6 / rate_hz)
+        for k, img in enumerate(images):
+            capture = t0_us[0] + k * period_us
+            wait = (capture - time.time_ns() // 1000) * 1e-6
+            if wait > 0:
+                time.sleep(wait)
+            pub.put(encode_image(img, capture, frame_id="nadir", encoding="mono8"))
+        time.sleep(1.0)
+        cpu1 = _cpu_s(comp.pid)
+    finally:
+        comp.send_signal(signal.SIGINT)
+        try:
+            comp.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            comp.kill()
+        ap.stop()
+        pub.undeclare()
+        session.close()
+        log.close()
+    recs = [r for r in ap.accepted() if r.usec >= t0_us[0] + ap.true_offset_us() - 1000]
+    lat_ms = np.array([(r.recv_boot_us - r.usec) / 1000.0 for r in recs])
+    span_s = n / rate_hz
+    return {
+        "estimator": estimator,
+        "rate_hz": rate_hz,
+        "duration_s": span_s,
+        "frames_sent": n,
+        "estimates_received": len(recs),
+        "fps": len(recs) / span_s,
+        "p50_ms": float(np.percentile(lat_ms, 50)) if len(lat_ms) else None,
+        "p99_ms": float(np.percentile(lat_ms, 99)) if len(lat_ms) else None,
+        "max_ms": float(lat_ms.max()) if len(lat_ms) else None,
+        "cpu_ms_per_frame": 1000.0 * (cpu1 - cpu0) / n,
+        "rejected_by_autopilot": ap.rejected(),
+        "dem_degradation": deg.describe(),
+        "companion_log": str(tmp / "companion.log"),
+    }
+
+
+def main(argv: list[str]) -> int:
+    p = parser("latency", __doc__.split("\n\n")[0])
+    p.add_argument("--rate", type=float, default=50.0, help="frames per second published (default 50)")
+    p.add_argument("--estimator", default="georef", choices=["georef", "terrain_lba"])
+    a = p.parse_args(argv)
+    duration = 8.0 if a.quick else 30.0
+    r = run(a.rate, duration, a.estimator, a.seed)
+    print(
+        table(
+            ["estimator", "rate Hz", "sent", "received", "fps", "p50 ms", "p99 ms", "max ms", "CPU ms/frame"],
+            [
+                [
+                    r["estimator"],
+                    r["rate_hz"],
+                    r["frames_sent"],
+                    r["estimates_received"],
+                    r["fps"],
+                    r["p50_ms"],
+                    r["p99_ms"],
+                    r["max_ms"],
+                    r["cpu_ms_per_frame"],
+                ]
+            ],
+            title=f"frame capture -> VISION_POSITION_ESTIMATE received, 480x480, {os.cpu_count()} cores "
+            f"(targets: >= 50 fps, p99 <= 30 ms); {r['dem_degradation']}",
+        )
+    )
+    if r["rejected_by_autopilot"]:
+        print(f"rejected by the autopilot: {r['rejected_by_autopilot']}")
+    write_json(a.json, {"quick": a.quick, **r})
+    return 0
