@@ -459,7 +459,7 @@ class SimAutopilotLink:
             if not (np.all(np.isfinite(q)) and np.all(np.isfinite(twist))):
                 self._reject(REJECT_NON_FINITE)
                 return
-            rpy = rpy_from_quaternion(q)
+            rpy = rpy_from_quaternion([float(c) for c in q])
             self._ext_nav(
                 "odometry",
                 int(msg.time_usec),

@@ -500,3 +500,19 @@ def test_timesync_options_are_used() -> None:
     link = MavlinkLink(MavlinkOptions(timesync=TimeSyncOptions(max_rtt_us=1234)))
     assert link.timesync.options.max_rtt_us == 1234
     link.transport.close()
+
+
+def test_tcp_link_to_sim_tcp_server() -> None:
+    port = free_port(socket.SOCK_STREAM)
+    sim = SimAutopilotLink(f"tcpin:127.0.0.1:{port}", rng=np.random.default_rng(4))
+    link = MavlinkLink(MavlinkOptions(connection=f"tcp:127.0.0.1:{port}", backoff=FAST_BACKOFF))
+    sim.start()
+    link.start()
+    try:
+        assert wait_for(lambda: link.timesync.synced and link.state is LinkState.UP, 5.0)
+        assert link.send_estimate(estimate(time.time_ns() // 1000 - 20_000)) is None
+        assert wait_for(lambda: sim.accepted(), 3.0)
+    finally:
+        link.stop()
+        sim.stop()
+    assert abs(link.timesync.offset_us - sim.true_offset_us()) < 2_000

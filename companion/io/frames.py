@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from typing import Final
+from typing import Any, Final
 
 import cv2
 import numpy as np
@@ -86,7 +86,7 @@ def _stamp_us(header: object) -> int:
     return int(stamp.sec) * 1_000_000 + int(stamp.nanosec) // 1000
 
 
-def _header(stamp_us: int, frame_id: str) -> object:
+def _header(stamp_us: int, frame_id: str) -> Any:
     sec, usec = divmod(int(stamp_us), 1_000_000)
     return _Header(stamp=_Time(sec=int(sec), nanosec=int(usec) * 1000), frame_id=frame_id)
 
@@ -142,7 +142,9 @@ def decode_image(data: bytes, camera: str, seq: int = 0) -> Frame:
         pixels = np.ascontiguousarray(rows).view(">u2" if big else "<u2").astype(np.uint16)
     else:
         pixels = np.ascontiguousarray(rows)
-    image = pixels.reshape(height, width, channels) if channels > 1 else pixels.reshape(height, width)
+    image: np.ndarray = (
+        pixels.reshape(height, width, channels) if channels > 1 else pixels.reshape(height, width)
+    )
     if conversion is not None:
         image = cv2.cvtColor(image, conversion)
     return Frame(stamp_us=_stamp_us(msg.header), camera=camera, image=image, seq=seq)  # type: ignore[attr-defined]

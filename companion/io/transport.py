@@ -352,13 +352,13 @@ class TcpServerTransport(Transport):
         watch = [listener] if self._client is None else [listener, self._client]
         ready, _, _ = select.select(watch, [], [], timeout_s)
         if listener in ready:
-            client, _ = listener.accept()
-            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            accepted, _ = listener.accept()
+            accepted.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             with self._lock:
                 if self._client is not None:
                     self.stats.drops += 1
                 self._close_client()
-                self._client = client
+                self._client = accepted
                 self.stats.connects += 1
                 self.stats.reconnects = max(0, self.stats.connects - 1)
                 self.stats.connected = True
