@@ -26,6 +26,7 @@ def _add_sim_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed", type=float, default=d.speed_mps, help="m/s (default %(default)s)")
     p.add_argument("--height", type=float, default=d.height_agl_m, help="m above mean ground")
     p.add_argument("--camera-rate", type=float, default=d.camera_rate_hz, help="Hz (default %(default)s)")
+    p.add_argument("--start-delay", type=float, default=None, help="s before take-off (sim: 0, demo: 4)")
 
 
 def _sim_config(a: argparse.Namespace, **kw) -> SimConfig:
@@ -52,6 +53,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
         camera_key=a.camera_key,
         out_dir=a.out,
         drop_every=a.drop_every,
+        start_delay_s=a.start_delay or 0.0,
     )
 
     def progress(rep: dict) -> None:
@@ -60,6 +62,8 @@ def cmd_sim(a: argparse.Namespace) -> int:
     vehicle = SimVehicle(cfg, progress=progress)
     signal.signal(signal.SIGTERM, lambda *_: vehicle.stop())
     signal.signal(signal.SIGINT, lambda *_: vehicle.stop())
+    # SIGUSR1 reboots the simulated autopilot (its clock restarts at 0): for tests and demos of recovery
+    signal.signal(signal.SIGUSR1, lambda *_: vehicle.autopilot.reboot())
     print(json.dumps({"ready": True, "distance_m": vehicle.traj.distance_m()}), flush=True)
     res = vehicle.run()
     summary = save_result(res, Path(cfg.out_dir), cfg, vehicle.traj)

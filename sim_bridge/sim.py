@@ -50,6 +50,7 @@ class SimConfig:
     out_dir: str = "runs/sim"
     progress_period_s: float = 2.0
     drop_every: int = 0  # publish only; skip every n-th frame (tests of dropped frames); 0 = none
+    start_delay_s: float = 0.0  # autopilot up, camera silent: time for a companion to connect and sync
 
 
 def make_trajectory(cfg: SimConfig, ground_m: float) -> Trajectory:
@@ -149,8 +150,9 @@ class SimVehicle:
             mode="peer", connect=[], listen=list(cfg.zenoh_listen), multicast_scouting=False
         )
         publisher = session.declare_publisher(cfg.camera_key)
-        self.t0_us = time.time_ns() // 1000
         self.autopilot.start()
+        self._stop.wait(cfg.start_delay_s)
+        self.t0_us = time.time_ns() // 1000
         period_us = int(1e6 / cfg.camera_rate_hz)
         n_frames = int(self.traj.duration_s * cfg.camera_rate_hz)
         next_progress = time.monotonic() + cfg.progress_period_s

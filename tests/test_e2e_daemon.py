@@ -1,0 +1,307 @@
+"""End to end: the real daemon against the simulated vehicle as a separate process, on loopback.
+
+Real Zenoh sessions, real MAVLink over UDP (and over a pty pair), no mocks. The daemon is observed the
+way an operator would: through its Zenoh status topic and through what the autopilot accepted.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.cli import apply_overrides, cmd_run
+from companion.config import load_config
+from companion.io.dem_store import save_dem_npz
+from companion.io.frames import encode_image
+from companion.io.zenoh_io import open_session
+from sim_bridge.demo import free_port
+from sim_bridge.sim import SimConfig, make_trajectory
+from sim_bridge.terrain import degrade_dem, make_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+RATE_HZ = 5.0  # low enough for the renderer and the estimator on a loaded 2-core CI machine
+
+
+@pytest.fixture(scope="module")
+def dem_path(tmp_path_factory) -> tuple[Path, float]:
+    scene = make_scene("08", seed=0)
+    dem, _ = degrade_dem(scene.dem, seed=7)
+    path = tmp_path_factory.mktemp("dem") / "dem.npz"
+    save_dem_npz(path, dem)
+    return path, float(np.nanmean(scene.dem.height_m))
+
+
+class SimProcess:
+    """``python -m sim_bridge sim`` with its JSON lines read in a thread."""
+
+    def __init__(self, out: Path, mavlink: str, zport: int, duration_s: float) -> None:
+        cmd = [
+            sys.executable,
+            "-m",
+            "sim_bridge",
+            "sim",
+            "--duration",
+            str(duration_s),
+            "--camera-rate",
+            str(RATE_HZ),
+            "--start-delay",
+            "4",
+            "--zenoh-listen",
+            f"tcp/127.0.0.1:{zport}",
+            "--mavlink",
+            mavlink,
+            "--out",
+            str(out),
+        ]
+        self.proc = subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=open(out / "sim.log", "w"),
+            text=True,
+            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        )
+        self.ready = threading.Event()
+        self.done: dict | None = None
+        self.progress: list[dict] = []
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            try:
+                msg = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if msg.get("ready"):
+                self.ready.set()
+            elif "progress" in msg:
+                self.progress.append(msg["progress"])
+            elif "done" in msg:
+                self.done = msg["done"]
+
+    def wait_done(self, timeout_s: float) -> dict:
+        self.proc.wait(timeout=timeout_s)
+        time.sleep(0.2)
+        assert self.done is not None, "simulator did not report its summary"
+        return self.done
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+
+
+def companion_config(dem: Path, ground_m: float, zenoh_connect: list[str], mavlink: str):
+    cfg = SimConfig(duration_s=60.0)
+    s0 = make_trajectory(cfg, ground_m).state_at(0.0)
+    yaw0 = float(np.degrees(np.arctan2(s0.R_world_body[1, 0], s0.R_world_body[0, 0])))
+    sets = {
+        "zenoh.connect": zenoh_connect,
+        "mavlink.connection": mavlink,
+        "dem.path": str(dem),
+        "estimator.initial_position_ned_m": [float(v) for v in s0.p_world],
+        "estimator.initial_yaw_deg": yaw0,
+        "daemon.log_level": "warning",
+    }
+    return apply_overrides(
+        load_config(ROOT / "configs/sim_mars.toml"), [f"{k}={json.dumps(v)}" for k, v in sets.items()], "test"
+    )
+
+
+class StatusListener:
+    """Keeps the daemon's last status message from its Zenoh status topic."""
+
+    def __init__(self, connect: list[str]) -> None:
+        self.session = open_session("peer", connect, [], False)
+        self.last: dict | None = None
+        self.sub = self.session.declare_subscriber("companion/status", self._on)
+
+    def _on(self, sample) -> None:
+        self.last = json.loads(sample.payload.to_bytes())
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.session.close()
+
+
+def estimate_errors(out: Path) -> np.ndarray:
+    truth = np.loadtxt(out / "truth.tum", ndmin=2)
+    est = np.loadtxt(out / "estimate.tum", ndmin=2)
+    p = np.stack([np.interp(est[:, 0], truth[:, 0], truth[:, i]) for i in (1, 2, 3)], axis=1)
+    return np.linalg.norm(est[:, 1:4] - p, axis=1)
+
+
+def image_cdr(
+    stamp_us: int, height: int, width: int, step: int, data: np.ndarray, encoding: str = "mono8"
+) -> bytes:
+    """A sensor_msgs/Image in CDR with whatever fields we like (consistent or not)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    Time, Header, Image = (
+        ts.types[n] for n in ("builtin_interfaces/msg/Time", "std_msgs/msg/Header", "sensor_msgs/msg/Image")
+    )
+    header = Header(
+        stamp=Time(sec=stamp_us // 1_000_000, nanosec=(stamp_us % 1_000_000) * 1000), frame_id="cam"
+    )
+    msg = Image(
+        header=header, height=height, width=width, encoding=encoding, is_bigendian=0, step=step, data=data
+    )
+    return bytes(ts.serialize_cdr(msg, "sensor_msgs/msg/Image"))
+
+
+def bad_payloads(now_us: int) -> list[tuple[str, bytes]]:
+    img = np.full((480, 480), 100, np.uint8)
+    good = encode_image(img, now_us, encoding="mono8")
+    rng = np.random.default_rng(3)
+    return [
+        ("truncated", good[: len(good) // 3]),
+        ("random", rng.integers(0, 256, 3000, dtype=np.uint8).tobytes()),
+        (
+            "unknown_encoding",
+            encode_image(np.zeros((8, 8, 3), np.uint8), now_us, encoding="rgb8").replace(b"rgb8", b"yuv9"),
+        ),
+        ("size_mismatch", image_cdr(now_us, height=480, width=480, step=480, data=np.zeros(1000, np.uint8))),
+        ("future", encode_image(img, now_us + 3_600_000_000, encoding="mono8")),
+        ("backwards", encode_image(img, now_us - 10_000_000, encoding="mono8")),
+    ]
+
+
+def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(tmp_path: Path, dem_path) -> None:
+    dem, ground = dem_path
+    zsim, zbad, mport = (
+        free_port(socket.SOCK_STREAM),
+        free_port(socket.SOCK_STREAM),
+        free_port(socket.SOCK_DGRAM),
+    )
+    sim = SimProcess(tmp_path, f"udpin:127.0.0.1:{mport}", zsim, duration_s=20.0)
+    bad_session = open_session("peer", [], [f"tcp/127.0.0.1:{zbad}"], False)
+    bad_pub = bad_session.declare_publisher("uav/camera/nadir")
+    endpoints = [f"tcp/127.0.0.1:{zsim}", f"tcp/127.0.0.1:{zbad}"]
+    status = StatusListener(endpoints)
+    stop = threading.Event()
+    cfg = companion_config(dem, ground, endpoints, f"udpout:127.0.0.1:{mport}")
+    daemon = threading.Thread(target=cmd_run, args=(cfg, stop), daemon=True)
+    try:
+        assert sim.ready.wait(60)
+        daemon.start()
+        time.sleep(8.0)  # mid-flight: throw every kind of bad frame at the daemon
+        for _, payload in bad_payloads(time.time_ns() // 1000):
+            bad_pub.put(payload)
+            time.sleep(0.05)
+        summary = sim.wait_done(120)
+        time.sleep(1.5)  # one more status message
+    finally:
+        stop.set()
+        daemon.join(15)
+        sim.kill()
+        bad_pub.undeclare()
+        bad_session.close()
+        st = status.last
+        status.close()
+    assert not daemon.is_alive(), "daemon did not stop on request"
+    published, accepted = summary["frames_published"], summary["estimates_accepted"]
+    assert published >= 0.8 * 20 * RATE_HZ, summary
+    assert accepted >= 0.95 * published, summary
+    assert not summary["rejected"], f"the autopilot rejected estimates: {summary['rejected']}"
+    err = estimate_errors(tmp_path)
+    assert np.median(err) < 2.0 and np.percentile(err, 95) < 6.0, f"median {np.median(err):.2f} m"
+    # the operator sees every bad frame, by reason, and the daemon kept estimating after them
+    assert st is not None
+    reasons = " ".join(st["frames"]["decode_errors"])
+    for word in ("truncated", "encoding", "size", "future"):
+        assert word in reasons, f"{word!r} not among the counted reasons: {st['frames']['decode_errors']}"
+    assert sum(st["frames"]["decode_errors"].values()) >= 6
+    assert st["estimator_errors"] == 0
+
+
+class PtyBridge:
+    """Serial cable emulation: a pty pair whose master end is pumped to and from a UDP peer.
+
+    The daemon opens the pty's slave as a serial port; ``cut()`` stops the pump (the cable is pulled).
+    """
+
+    def __init__(self, udp_port: int) -> None:
+        self.master, slave = os.openpty()
+        self.dev = os.ttyname(slave)
+        self._slave = slave
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.connect(("127.0.0.1", udp_port))
+        self.connected = threading.Event()
+        self.connected.set()
+        self._stop = threading.Event()
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self) -> None:
+        while not self._stop.is_set():
+            r, _, _ = select.select([self.master, self.sock], [], [], 0.05)
+            for fd in r:
+                try:
+                    data = os.read(self.master, 4096) if fd == self.master else self.sock.recv(4096)
+                except OSError:
+                    continue
+                if not self.connected.is_set():
+                    continue  # cable pulled: bytes are lost both ways
+                try:
+                    if fd == self.master:
+                        self.sock.send(data)
+                    else:
+                        os.write(self.master, data)
+                except OSError:
+                    pass
+
+    def close(self) -> None:
+        self._stop.set()
+        time.sleep(0.1)
+        self.sock.close()
+        os.close(self.master)
+        os.close(self._slave)
+
+
+def test_serial_link_cut_restored_and_autopilot_reboot(tmp_path: Path, dem_path) -> None:
+    dem, ground = dem_path
+    zsim, mport = free_port(socket.SOCK_STREAM), free_port(socket.SOCK_DGRAM)
+    sim = SimProcess(tmp_path, f"udpin:127.0.0.1:{mport}", zsim, duration_s=36.0)
+    assert sim.ready.wait(60)
+    bridge = PtyBridge(mport)
+    stop = threading.Event()
+    cfg = companion_config(dem, ground, [f"tcp/127.0.0.1:{zsim}"], f"serial:{bridge.dev}:115200")
+    daemon = threading.Thread(target=cmd_run, args=(cfg, stop), daemon=True)
+    status = StatusListener([f"tcp/127.0.0.1:{zsim}"])
+    states: list[str] = []
+    try:
+        daemon.start()
+        time.sleep(14.0)
+        bridge.connected.clear()  # pull the cable for 5 s
+        time.sleep(5.0)
+        states.append(status.last["link"]["state"] if status.last else "?")
+        bridge.connected.set()
+        time.sleep(6.0)
+        sim.proc.send_signal(signal.SIGUSR1)  # the autopilot reboots: its clock restarts at 0
+        summary = sim.wait_done(120)
+    finally:
+        stop.set()
+        daemon.join(15)
+        sim.kill()
+        bridge.close()
+        st = status.last
+        status.close()
+    assert states == ["down"], f"link state while the cable was out: {states}"
+    recs_t = np.loadtxt(tmp_path / "estimate.tum", ndmin=2)[:, 0]
+    t_cut = 14.0 - 4.0  # flight time when the cable was pulled (after the 4 s start delay), roughly
+    after_restore = recs_t[recs_t > t_cut + 7.0]
+    assert len(after_restore) >= 10, "no estimates after the link came back"
+    assert summary["resets"] >= 1, "reset_counter was not bumped after the autopilot rebooted"
+    assert st is not None and st["link"]["autopilot_resets"], st["link"]
+    # estimates kept flowing after the reboot, stamped in the new boot clock
+    assert recs_t.max() > 30.0 - 4.0, f"last estimate at {recs_t.max():.1f} s"
