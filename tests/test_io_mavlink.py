@@ -512,7 +512,11 @@ def test_tcp_link_to_sim_tcp_server() -> None:
         assert wait_for(lambda: link.timesync.synced and link.state is LinkState.UP, 5.0)
         assert link.send_estimate(estimate(time.time_ns() // 1000 - 20_000)) is None
         assert wait_for(lambda: sim.accepted(), 3.0)
+        assert link.send_set_gps_global_origin(-14.5, 137.25, -2500.0)
+        assert wait_for(lambda: link.origin is not None, 3.0)  # the sim confirms with GPS_GLOBAL_ORIGIN
     finally:
         link.stop()
         sim.stop()
     assert abs(link.timesync.offset_us - sim.true_offset_us()) < 2_000
+    assert link.origin is not None and link.origin.lat_deg == pytest.approx(-14.5)
+    assert link.origin.alt_m == pytest.approx(-2500.0)
