@@ -14,7 +14,10 @@ NPZ_KEYS = ("height_m", "north0_m", "east0_m", "cell_m")
 def save_dem_npz(path: str | Path, dem: Dem) -> None:
     """Write ``dem`` losslessly (float32 heights with NaN holes, and the NED placement)."""
     np.savez_compressed(
-        Path(path), height_m=dem.height_m.astype(np.float32), north0_m=dem.north0_m, east0_m=dem.east0_m,
+        Path(path),
+        height_m=dem.height_m.astype(np.float32),
+        north0_m=dem.north0_m,
+        east0_m=dem.east0_m,
         cell_m=dem.cell_m,
     )
 
@@ -33,7 +36,10 @@ def load_dem(
             if missing:
                 raise ValueError(f"{p}: not a DEM .npz (missing {', '.join(missing)})")
             return Dem(
-                z["height_m"].astype(np.float32), float(z["north0_m"]), float(z["east0_m"]), float(z["cell_m"])
+                z["height_m"].astype(np.float32),
+                float(z["north0_m"]),
+                float(z["east0_m"]),
+                float(z["cell_m"]),
             )
     if suffix in (".tif", ".tiff"):
         from companion.io.dem_file import load_geotiff_dem
