@@ -116,13 +116,16 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
             "per_camera": st,
         }
 
+    def publish_status(text: str) -> None:
+        status_pub.publish(json.loads(text))
+
     daemon = Daemon(
         estimator,
         handoff,
         link,
         max_rate_hz=cfg.mavlink.max_rate_hz,
         status_period_s=d.status_period_s,
-        publish_status=lambda s: status_pub.publish(json.loads(s)),
+        publish_status=publish_status,
         frame_counters=frame_counters,
     )
 

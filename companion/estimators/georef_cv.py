@@ -9,6 +9,7 @@ from __future__ import annotations
 from bisect import bisect_left
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -54,7 +55,7 @@ class _History:
             self.stamps.popleft()
             self.values.popleft()
 
-    def nearest(self, stamp_us: int, max_gap_us: int) -> object | None:
+    def nearest(self, stamp_us: int, max_gap_us: int) -> Any:
         if not self.stamps:
             return None
         stamps = list(self.stamps)
@@ -66,7 +67,7 @@ class _History:
 class GeorefEstimator:
     """Implements ``companion.types.Estimator`` for a single nadir camera."""
 
-    cameras = ("nadir",)
+    cameras: tuple[str, ...] = ("nadir",)
 
     def __init__(
         self,
