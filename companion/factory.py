@@ -48,7 +48,7 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
 
         cam = cfg.cameras["nadir"]
         t = cfg.estimator.terrain_lba
-        opt = TerrainLbaOptions(
+        lba_opt = TerrainLbaOptions(
             window_size=t.window_size,
             w_geo=t.w_geo,
             min_frames_between_kf=t.min_frames_between_kf,
@@ -56,7 +56,7 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             max_tracked_ratio_kf=t.max_tracked_ratio_kf,
         )
         return TerrainLbaEstimator(
-            opt,
+            lba_opt,
             cam.intrinsics(),
             cam.R_body_cam(),
             load_configured_dem(cfg),
@@ -70,12 +70,12 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
 
         e = cfg.estimator.ekf
         cams = {"visible": ("visible",), "thermal": ("thermal",), "dual": ("visible", "thermal")}[e.mode]
-        opt = EkfOptions(
+        ekf_opt = EkfOptions(
             mode=e.mode, max_landmarks_per_camera=e.max_landmarks_per_camera, sampling=e.sampling
         )
         planet = cfg.origin.planet if cfg.origin is not None else "europa"
         return VisThermalEkfEstimator(
-            opt,
+            ekf_opt,
             {c: cfg.cameras[c].intrinsics() for c in cams},
             {c: cfg.cameras[c].R_body_cam() for c in cams},
             _initial_position(cfg),
