@@ -92,10 +92,16 @@ def main(argv: list[str] | None = None) -> int:
     pd.add_argument("--estimator", default="georef", choices=["georef", "terrain_lba"])
     pd.add_argument("--out", default=None, help="run directory (default runs/demo-<time>)")
     pd.add_argument("--config", default="configs/sim_mars.toml", help="companion config template")
+    from sim_bridge.recording import add_record_parser, add_replay_parser
+
+    add_record_parser(sub)
+    add_replay_parser(sub)
     a = ap.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr
     )
+    if getattr(a, "func", None) is not None:  # record / replay / sitl-camera
+        return int(a.func(a))
     if a.cmd == "sim":
         if a.zenoh_listen is None:
             a.zenoh_listen = list(SimConfig().zenoh_listen)

@@ -1,0 +1,312 @@
+"""Recording Zenoh frames into rosbag2 (MCAP) and replaying bags onto Zenoh, over real loopback sessions."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from companion.io.frames import StampGate, decode_image, encode_compressed, encode_image
+from companion.io.zenoh_io import FramePublisher, FrameSubscriber, StatusPublisher, open_session
+from sim_bridge import cli
+from sim_bridge.recording import (
+    IMAGE_MSGTYPE,
+    READ_ERROR,
+    STRING_MSGTYPE,
+    BagRecorder,
+    BagReplayer,
+    RecordTopic,
+    ReplayOptions,
+    key_from_topic,
+    restamp_cdr,
+    topic_from_key,
+)
+
+KEY = "uav/camera/nadir"
+TS = get_typestore(Stores.ROS2_HUMBLE)
+
+
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(cond: Callable[[], Any], timeout_s: float = 5.0) -> bool:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.005)
+    return bool(cond())
+
+
+def wait_matching(session, key: str) -> None:
+    """Routes take a moment: wait until a publisher on ``key`` has a subscriber."""
+    probe = session.declare_publisher(key)
+    assert wait_for(lambda: probe.matching_status.matching, 5.0)
+    probe.undeclare()
+
+
+def pattern(k: int, size: int = 48) -> np.ndarray:
+    rng = np.random.default_rng(k)
+    return rng.integers(0, 256, (size, size), dtype=np.uint8)
+
+
+def image_msg(stamp_us: int, height: int, width: int, encoding: str, n_bytes: int) -> bytes:
+    """A well-formed CDR Image whose content may be inconsistent (for bad-input tests)."""
+    sec, usec = divmod(stamp_us, 1_000_000)
+    header = TS.types["std_msgs/msg/Header"](
+        stamp=TS.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=usec * 1000), frame_id="cam"
+    )
+    msg = TS.types[IMAGE_MSGTYPE](
+        header=header,
+        height=height,
+        width=width,
+        encoding=encoding,
+        is_bigendian=0,
+        step=width,
+        data=np.zeros(n_bytes, np.uint8),
+    )
+    return bytes(TS.serialize_cdr(msg, IMAGE_MSGTYPE))
+
+
+def now_us() -> int:
+    return time.time_ns() // 1000
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_tcp_port()}"
+
+
+@pytest.fixture
+def sessions(endpoint):
+    a = open_session("peer", listen=[endpoint], multicast_scouting=False)
+    b = open_session("peer", connect=[endpoint], multicast_scouting=False)
+    yield a, b
+    b.close()
+    a.close()
+
+
+def record_frames(a, b, path: Path, n: int = 8, period_s: float = 0.1) -> tuple[list[bytes], list[int]]:
+    """Publish ``n`` frames (session a) at ``period_s`` and record them (session b). Returns the payloads
+    as sent and the wall times (us) just before each publication."""
+    rec = BagRecorder(
+        b, path, [RecordTopic(KEY), RecordTopic("companion/status", STRING_MSGTYPE)], clock_ns=time.time_ns
+    )
+    rec.start()
+    pub = FramePublisher(a, KEY)
+    status = StatusPublisher(a)
+    wait_matching(a, KEY)
+    wait_matching(a, "companion/status")
+    payloads, sent_us = [], []
+    t0 = time.monotonic()
+    for k in range(n):
+        time.sleep(max(0.0, t0 + k * period_s - time.monotonic()))
+        stamp = now_us()
+        sent_us.append(stamp)
+        pub.put(pattern(k), stamp, frame_id="nadir_camera")
+        payloads.append(encode_image(pattern(k), stamp, frame_id="nadir_camera"))
+    status.publish({"state": "tracking", "frames": n})
+    assert wait_for(lambda: rec.summary()["topics"].get("/companion/status", {}).get("messages") == 1)
+    summary = rec.stop()
+    pub.close()
+    status.close()
+    assert summary["topics"]["/uav/camera/nadir"]["messages"] == n, summary
+    return payloads, sent_us
+
+
+def test_topic_key_mapping() -> None:
+    assert topic_from_key("uav/camera/nadir") == "/uav/camera/nadir"
+    assert key_from_topic("/uav/camera/nadir") == "uav/camera/nadir"
+    assert key_from_topic(topic_from_key("companion/status")) == "companion/status"
+
+
+def test_record_writes_mcap_with_the_cdr_bytes_as_received(sessions, tmp_path) -> None:
+    a, b = sessions
+    t_start = time.time_ns()
+    payloads, _ = record_frames(a, b, tmp_path / "bag", n=5, period_s=0.05)
+    t_end = time.time_ns()
+    assert list((tmp_path / "bag").glob("*.mcap")), "MCAP storage expected"
+    assert (tmp_path / "bag" / "metadata.yaml").exists()
+    with Reader(tmp_path / "bag") as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        assert types == {"/uav/camera/nadir": IMAGE_MSGTYPE, "/companion/status": STRING_MSGTYPE}
+        images, status = [], []
+        for conn, log_ns, raw in reader.messages():
+            assert t_start <= log_ns <= t_end  # log time = receive time
+            (images if conn.topic == "/uav/camera/nadir" else status).append((log_ns, bytes(raw)))
+    assert [raw for _, raw in images] == payloads  # byte for byte, in order
+    log_times = [t for t, _ in images]
+    assert log_times == sorted(log_times)
+    text = TS.deserialize_cdr(status[0][1], STRING_MSGTYPE).data
+    assert json.loads(text) == {"state": "tracking", "frames": 5}
+
+
+def replay_into_subscriber(
+    a, b, bag: Path, options: ReplayOptions, gate: Callable[[], StampGate] | None = None
+) -> tuple[Any, list[tuple[int, Any]], FrameSubscriber]:
+    """Replay ``bag`` from session a into a FrameSubscriber on session b; (result, [(arrival_us, frame)])."""
+    arrived: list[tuple[int, Any]] = []
+    sub = FrameSubscriber(b, {"nadir": KEY}, stamp_gate=gate, sink=lambda f: arrived.append((now_us(), f)))
+    res = BagReplayer(a, bag, options).run()
+    n = sum(res.published.values())
+    wait_for(lambda: sub.counters["nadir"].received >= n, 3.0)
+    sub.close()
+    return res, arrived, sub
+
+
+def test_replay_reproduces_the_recording_at_its_pace_and_restamps(sessions, tmp_path) -> None:
+    a, b = sessions
+    n, period = 8, 0.1
+    payloads, sent_us = record_frames(a, b, tmp_path / "bag", n=n, period_s=period)
+    sent_frames = [decode_image(p, "nadir") for p in payloads]
+
+    # 1. as recorded (old stamps pass a gate without an age limit), at double speed
+    no_age = lambda: StampGate(max_age_us=None)  # noqa: E731
+    res, arrived, _ = replay_into_subscriber(a, b, tmp_path / "bag", ReplayOptions(rate=2.0), no_age)
+    assert res.published == {"/uav/camera/nadir": n} and res.bad == {}
+    assert res.skipped_topics == {"/companion/status": STRING_MSGTYPE}
+    assert len(arrived) == n
+    for (_, got), want in zip(arrived, sent_frames, strict=True):
+        assert got.stamp_us == want.stamp_us
+        np.testing.assert_array_equal(got.image, want.image)
+    span_s = (arrived[-1][0] - arrived[0][0]) * 1e-6
+    recorded_span_s = (sent_us[-1] - sent_us[0]) * 1e-6
+    assert recorded_span_s / 2 * 0.7 < span_s < recorded_span_s / 2 * 1.5 + 0.05, (span_s, recorded_span_s)
+
+    # 2. restamped at 1x into a live-style gate (2 s age limit, strictly increasing stamps)
+    time.sleep(0.3)
+    res, arrived, sub = replay_into_subscriber(a, b, tmp_path / "bag", ReplayOptions(rate=1.0, restamp=True))
+    assert len(arrived) == n and sub.stats()["nadir"]["errors"] == {}
+    for (t_arr, got), want in zip(arrived, sent_frames, strict=True):
+        assert got.stamp_us > want.stamp_us + 200_000  # fresh, not the recorded stamp
+        assert 0 <= t_arr - got.stamp_us < 200_000  # stamped at publication, arrived right after
+        np.testing.assert_array_equal(got.image, want.image)
+    gaps = np.diff([f.stamp_us for _, f in arrived]) * 1e-6
+    assert np.median(gaps) == pytest.approx(period, abs=0.03)  # the recorded pace, in the new stamps
+
+
+def test_restamp_changes_only_the_stamp() -> None:
+    img = pattern(3, 16)
+    for little in (True, False):
+        msg = TS.deserialize_cdr(encode_image(img, 1_000_000_123, "cam"), IMAGE_MSGTYPE)
+        payload = bytes(TS.serialize_cdr(msg, IMAGE_MSGTYPE, little_endian=little))
+        out = restamp_cdr(payload, 1_700_000_000_654_321)
+        assert len(out) == len(payload) and out[12:] == payload[12:] and out[:4] == payload[:4]
+        frame = decode_image(out, "cam")
+        assert frame.stamp_us == 1_700_000_000_654_321
+        np.testing.assert_array_equal(frame.image, img)
+    comp = encode_compressed(img, 5_000_000, "cam")
+    msg = TS.deserialize_cdr(restamp_cdr(comp, 7_000_001), "sensor_msgs/msg/CompressedImage")
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (7, 1000)
+
+
+@pytest.mark.parametrize("storage", [StoragePlugin.SQLITE3, StoragePlugin.MCAP], ids=["sqlite3", "mcap"])
+def test_bad_messages_in_a_bag_are_counted_and_skipped(sessions, tmp_path, storage) -> None:
+    a, b = sessions
+    t0 = now_us() - 3_600_000_000  # an hour-old flight
+    good = [encode_image(pattern(k), t0 + k * 20_000) for k in range(6)]
+    bad = {
+        "truncated": good[0][: len(good[0]) // 2],
+        "bad_cdr": b"\x07\x07not a cdr message at all",
+        "empty": b"",
+        "size_mismatch": image_msg(t0, 48, 48, "mono8", 100),
+        "unknown_encoding": image_msg(t0, 4, 4, "yuv422_weird", 32),
+    }
+    path = tmp_path / "bag"
+    with Writer(path, version=8, storage_plugin=storage) as w:
+        conn = w.add_connection("/uav/camera/nadir", IMAGE_MSGTYPE, typestore=TS)
+        other = w.add_connection("/tf_like", STRING_MSGTYPE, typestore=TS)
+        log_ns = t0 * 1000
+        items = [good[0], good[1], bad["truncated"], good[2], bad["bad_cdr"], good[3], bad["empty"]]
+        items += [good[4], bad["size_mismatch"], bad["unknown_encoding"], good[5]]
+        for k, payload in enumerate(items):
+            w.write(conn, log_ns + k * 10_000_000, payload)
+        w.write(other, log_ns, bytes(TS.serialize_cdr(TS.types[STRING_MSGTYPE](data="x"), STRING_MSGTYPE)))
+    res, arrived, _ = replay_into_subscriber(
+        a, b, path, ReplayOptions(rate=4.0, restamp=True, clock="log"), lambda: StampGate()
+    )
+    assert res.published == {"/uav/camera/nadir": 6}
+    assert res.bad == {reason: 1 for reason in bad}
+    assert res.skipped_topics == {"/tf_like": STRING_MSGTYPE}
+    assert [f.image.tobytes() for _, f in arrived] == [pattern(k).tobytes() for k in range(6)]
+
+
+def test_damaged_mcap_chunk_stops_the_replay_cleanly(sessions, tmp_path) -> None:
+    """A broken record inside the bag: what comes before it is replayed, the rest is counted as lost."""
+    a, b = sessions
+    t0 = now_us() - 10_000_000
+    path = tmp_path / "bag"
+    payloads = [encode_image(pattern(k, 400), t0 + k * 10_000) for k in range(14)]  # > 1 MiB: 2+ chunks
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection("/uav/camera/nadir", IMAGE_MSGTYPE, typestore=TS)
+        for k, payload in enumerate(payloads):
+            w.write(conn, (t0 + k * 10_000) * 1000, payload)
+    mcap = next(path.glob("*.mcap"))
+    data = bytearray(mcap.read_bytes())
+    at = bytes(data).find(payloads[-1])  # the last message's record: its length field is 26 bytes before
+    data[at - 26 : at - 22] = b"\xff\xff\xff\x7f"
+    mcap.write_bytes(bytes(data))
+    res, arrived, _ = replay_into_subscriber(
+        a, b, path, ReplayOptions(rate=20.0, restamp=True), lambda: StampGate()
+    )
+    n = res.published.get("/uav/camera/nadir", 0)
+    assert res.bad == {READ_ERROR: 1}
+    assert 0 < n < len(payloads)
+    assert [f.image.tobytes() for _, f in arrived] == [pattern(k, 400).tobytes() for k in range(n)]
+
+
+def test_cli_record_then_replay(endpoint, tmp_path, capsys) -> None:
+    """``python -m sim_bridge record`` and ``replay`` through the CLI entry point (in-process)."""
+    pub_session = open_session("peer", listen=[endpoint], multicast_scouting=False)
+    pub = FramePublisher(pub_session, KEY)
+    stop = threading.Event()
+
+    def publish() -> None:
+        k = 0
+        while not stop.is_set():
+            pub.put(pattern(k), now_us())
+            k += 1
+            time.sleep(0.05)
+
+    th = threading.Thread(target=publish, daemon=True)
+    th.start()
+    bag = tmp_path / "cli_bag"
+    try:
+        rc = cli.main(["record", "--out", str(bag), "--duration", "1.0", "--zenoh-connect", endpoint])
+    finally:
+        stop.set()
+        th.join()
+        pub.close()
+        pub_session.close()
+    assert rc == 0
+    out = capsys.readouterr().out
+    recorded = json.loads(out.strip().splitlines()[-1])["recorded"]
+    n = recorded["topics"]["/uav/camera/nadir"]["messages"]
+    assert n >= 5 and recorded["topics"]["/uav/camera/nadir"]["rate_hz"] == pytest.approx(20, rel=0.5)
+
+    sub_session = open_session("peer", connect=[endpoint], multicast_scouting=False)
+    got: list[Any] = []
+    sub = FrameSubscriber(sub_session, {"nadir": KEY}, sink=got.append)
+    try:
+        rc = cli.main(["replay", str(bag), "--restamp", "--rate", "4", "--zenoh-listen", endpoint])
+        wait_for(lambda: len(got) >= n, 3.0)
+    finally:
+        sub.close()
+        sub_session.close()
+    assert rc == 0
+    replayed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["replayed"]
+    assert replayed["published"] == {"/uav/camera/nadir": n} and replayed["bad"] == {}
+    assert len(got) == n
+    assert cli.main(["replay", str(tmp_path / "missing_bag"), "--zenoh-listen", endpoint]) == 2
