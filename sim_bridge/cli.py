@@ -2,7 +2,9 @@
 
 - ``sim``: the simulated vehicle (autopilot + camera) as its own process, for a companion to fly with;
 - ``demo``: the README's main job — starts ``sim`` and ``companion run`` on loopback, shows progress,
-  prints the error table at the end (computed with evo) and writes a plot and TUM trajectories.
+  prints the error table at the end (computed with evo) and writes a plot and TUM trajectories;
+- ``record`` / ``replay``: Zenoh camera frames to and from rosbag2 (MCAP) bags (sim_bridge.recording);
+- ``sitl-camera``: the nadir camera for an ArduPilot / PX4 SITL (sim_bridge.sitl_bridge, deploy/SITL.md).
 """
 
 from __future__ import annotations
@@ -93,9 +95,11 @@ def main(argv: list[str] | None = None) -> int:
     pd.add_argument("--out", default=None, help="run directory (default runs/demo-<time>)")
     pd.add_argument("--config", default="configs/sim_mars.toml", help="companion config template")
     from sim_bridge.recording import add_record_parser, add_replay_parser
+    from sim_bridge.sitl_bridge import add_sitl_camera_parser
 
     add_record_parser(sub)
     add_replay_parser(sub)
+    add_sitl_camera_parser(sub)
     a = ap.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr
