@@ -77,6 +77,27 @@ def _remap_flat(img: np.ndarray, x: np.ndarray, y: np.ndarray, nearest: bool = F
     return out.reshape(m * w, -1)[:n] if out.ndim == 3 else out.ravel()[:n]
 
 
+def _block_bounds(h: np.ndarray, cell_m: float, B: int) -> np.ndarray:
+    """(ceil(rows/B), ceil(cols/B), 2) float32 bounds of the bilinear heightfield per block of B x B cells,
+    each taken over the block and its 8 neighbours (so they hold for any point within one block of it):
+    channel 0 = Lipschitz bound (largest edge difference along each axis / cell, combined), channel 1 =
+    highest terrain."""
+    rows, cols = h.shape
+    nbr, nbc = -(-rows // B), -(-cols // B)
+    hp = np.pad(h, ((0, nbr * B - rows), (0, nbc * B - cols)), mode="edge")
+    d_r = np.zeros_like(hp)
+    d_c = np.zeros_like(hp)
+    d_r[:-1] = np.abs(np.diff(hp, axis=0))
+    d_c[:, :-1] = np.abs(np.diff(hp, axis=1))
+    br = d_r.reshape(nbr, B, nbc, B).max(axis=(1, 3))
+    bc = d_c.reshape(nbr, B, nbc, B).max(axis=(1, 3))
+    bh = hp.reshape(nbr, B, nbc, B).max(axis=(1, 3))
+    k3 = np.ones((3, 3), np.uint8)
+    slope = cv2.dilate(np.sqrt(br * br + bc * bc) / np.float32(cell_m), k3, borderType=cv2.BORDER_REPLICATE)
+    hmax = cv2.dilate(bh, k3, borderType=cv2.BORDER_REPLICATE)
+    return np.ascontiguousarray(np.stack([slope, hmax], axis=-1).astype(np.float32))
+
+
 class VisibleRenderer:
     """Render 8-bit grey frames of a terrain seen by a pinhole camera.
 
@@ -88,8 +109,15 @@ class VisibleRenderer:
     change with ``sun.intensity``; pass a number to study intensity, as in paper 1 section 5.3.1).
     """
 
-    BLOCK_CELLS = 32
-    """Cells per side of a block of the slope-bound map; a safe step never moves further than one block."""
+    COARSE_LEVELS = 2
+    """Ray grids coarser than the image (each half the previous) used to start the finer ones."""
+
+    MIN_COARSE_PX = 48
+    """Smallest side of a coarse ray grid."""
+
+    BLOCK_CELLS = (8, 32)
+    """Cells per side of the blocks of the two heightfield-bound maps; a safe step based on one map never
+    moves further than one of its blocks."""
 
     def __init__(
         self,
@@ -131,32 +159,38 @@ class VisibleRenderer:
         while min(self._pyramid[-1].shape) > 64 and len(self._pyramid) < 8:
             self._pyramid.append(cv2.pyrDown(self._pyramid[-1]))
 
-        # per block of BLOCK_CELLS x BLOCK_CELLS cells, over the block and its 8 neighbours (a step never
-        # leaves the neighbourhood): channel 0 = Lipschitz bound of the bilinear heightfield (largest edge
-        # difference along each axis / cell), channel 1 = highest terrain
-        rows, cols = h.shape
-        B = self.BLOCK_CELLS
-        nbr, nbc = -(-rows // B), -(-cols // B)
-        pad_r, pad_c = nbr * B - rows, nbc * B - cols
-        hp = np.pad(h, ((0, pad_r), (0, pad_c)), mode="edge")
-        d_r = np.zeros_like(hp)
-        d_c = np.zeros_like(hp)
-        d_r[:-1] = np.abs(np.diff(hp, axis=0))
-        d_c[:, :-1] = np.abs(np.diff(hp, axis=1))
-        br = d_r.reshape(nbr, B, nbc, B).max(axis=(1, 3))
-        bc = d_c.reshape(nbr, B, nbc, B).max(axis=(1, 3))
-        bh = hp.reshape(nbr, B, nbc, B).max(axis=(1, 3))
-        k3 = np.ones((3, 3), np.uint8)
-        slope = cv2.dilate(
-            np.sqrt(br * br + bc * bc) / np.float32(dem.cell_m), k3, borderType=cv2.BORDER_REPLICATE
-        )
-        hmax = cv2.dilate(bh, k3, borderType=cv2.BORDER_REPLICATE)
-        self._block_bounds = np.ascontiguousarray(np.stack([slope, hmax], axis=-1).astype(np.float32))
+        # heightfield bounds per block, at two block sizes (fine for steps near the surface, coarse for
+        # long steps through the air): see _block_bounds
+        self._bounds = [(b, _block_bounds(h, dem.cell_m, b)) for b in self.BLOCK_CELLS]
 
-        # rays in the camera frame (z_cam = 1) and the noise bank
+        # height and its gradient (per cell, along rows and columns) for Newton refinement
+        g_row = cv2.Sobel(h, cv2.CV_32F, 0, 1, ksize=1, borderType=cv2.BORDER_REPLICATE) * np.float32(0.5)
+        g_col = cv2.Sobel(h, cv2.CV_32F, 1, 0, ksize=1, borderType=cv2.BORDER_REPLICATE) * np.float32(0.5)
+        self._hg = np.ascontiguousarray(np.stack([h, g_row, g_col], axis=-1))
+
+        # rays in the camera frame (z_cam = 1) on the image grid and on coarser grids (each half the
+        # previous, same pixel-centre convention as CameraIntrinsics.scaled / cv2.resize)
         self._rays_cam = pixel_rays_cam(intrinsics).astype(np.float32)
-        self._ray_x = np.ascontiguousarray(self._rays_cam[..., 0].ravel())
-        self._ray_y = np.ascontiguousarray(self._rays_cam[..., 1].ravel())
+        self._ray_levels: list[tuple[np.ndarray, np.ndarray, int, int]] = []
+        intr = intrinsics
+        while True:
+            rays = pixel_rays_cam(intr).astype(np.float32)
+            xs = np.ascontiguousarray(rays[..., 0].ravel())
+            ys = np.ascontiguousarray(rays[..., 1].ravel())
+            self._ray_levels.append((xs, ys, intr.height, intr.width))
+            if (
+                len(self._ray_levels) > self.COARSE_LEVELS
+                or min(intr.width, intr.height) < 2 * self.MIN_COARSE_PX
+            ):
+                break
+            intr = CameraIntrinsics(
+                intr.width // 2,
+                intr.height // 2,
+                intr.fx / 2,
+                intr.fy / 2,
+                (intr.cx + 0.5) / 2 - 0.5,
+                (intr.cy + 0.5) / 2 - 0.5,
+            )
         H, W = intrinsics.height, intrinsics.width
         if noise is not None:
             bank_rng = np.random.default_rng(noise.seed)
@@ -165,51 +199,122 @@ class VisibleRenderer:
 
     # ------------------------------------------------------------------------------------------------------
 
-    def _intersect(self, R_world_cam: np.ndarray, p_cam_in_world: np.ndarray, max_iter: int = 400) -> _Hit:
-        """Intersect every pixel ray with the heightfield (see the module docstring)."""
+    def _intersect(self, R_world_cam: np.ndarray, p_cam_in_world: np.ndarray) -> _Hit:
+        """Intersect every pixel ray with the heightfield, coarse to fine.
+
+        The coarsest ray grid is marched robustly (``_march``). Each finer grid starts from the coarser
+        depths, bilinearly interpolated, and refines them by Newton's method (``_newton``) where the coarse
+        neighbourhood saw one smooth surface; rays at depth discontinuities (occlusion edges, the raster
+        edge), rays where Newton does not converge or leaves the neighbours' depth range, are marched
+        robustly. Thin occluders seen by none of the coarse rays around a pixel (a few pixels wide) can be
+        missed by the refinement; the test against a brute-force march bounds how often.
+        """
+        dem = self.dem
+        R = np.asarray(R_world_cam, np.float64)
+        c = np.asarray(p_cam_in_world, np.float64).reshape(3)
+        r0f, c0f = dem.rc_from_ne(c[0], c[1])
+        u0 = float(-c[2])
+        if u0 < self._hmin:
+            raise ValueError(f"camera at height {u0:.1f} m is below the lowest terrain ({self._hmin:.1f} m)")
+        origin = (np.float32(r0f), np.float32(c0f), np.float32(u0))
+        levels = self._ray_levels
+        x, y, H, W = levels[-1]
+        t, r, cc, hit = self._march(R, origin, x, y)
+        for x, y, Hf, Wf in reversed(levels[:-1]):
+            tc = np.where(hit, t, np.float32(-1.0)).reshape(H, W)
+            k3 = np.ones((3, 3), np.uint8)
+            tmin = cv2.erode(tc, k3, borderType=cv2.BORDER_REPLICATE)
+            tmax = cv2.dilate(tc, k3, borderType=cv2.BORDER_REPLICATE)
+            t0 = cv2.resize(tc, (Wf, Hf), interpolation=cv2.INTER_LINEAR).ravel()
+            tmin = cv2.resize(tmin, (Wf, Hf), interpolation=cv2.INTER_NEAREST).ravel()
+            tmax = cv2.resize(tmax, (Wf, Hf), interpolation=cv2.INTER_NEAREST).ravel()
+            margin = np.float32(0.02) * tmax + np.float32(4.0 * dem.cell_m)
+            # one smooth surface around: every coarse neighbour hit, depths within a few percent
+            smooth = (tmin > 0) & (tmax - tmin <= margin)
+            H, W = Hf, Wf
+            # Newton on every ray (cheaper than selecting), kept where the surface was smooth
+            t, r, cc, hit = self._newton(R, origin, x, y, t0)
+            hit &= smooth & (t >= tmin - margin) & (t <= tmax + margin)
+            rest = np.flatnonzero(~hit)
+            if rest.size:
+                tr, rr, cr, hr = self._march(R, origin, x[rest], y[rest])
+                t[rest], r[rest], cc[rest], hit[rest] = tr, rr, cr, hr
+        rows, cols = dem.shape
+        valid = hit & (t > 0) & (r >= 0) & (cc >= 0) & (r <= rows - 1) & (cc <= cols - 1)
+        return _Hit(t.reshape(H, W), r.reshape(H, W), cc.reshape(H, W), valid.reshape(H, W))
+
+    def _ray_setup(self, R: np.ndarray, x: np.ndarray, y: np.ndarray):
+        """Grid-space directions of the rays d = R (x, y, 1): (a_row, a_col, a_down, a_horiz), each (N,)
+        float32, so that row(t) = r0 + t a_row, col(t) = c0 + t a_col, up(t) = u0 - t a_down."""
+        f32 = np.float32
+        inv_cell = f32(1.0 / self.dem.cell_m)
+        d_n = f32(R[0, 0]) * x + f32(R[0, 1]) * y + f32(R[0, 2])
+        d_e = f32(R[1, 0]) * x + f32(R[1, 1]) * y + f32(R[1, 2])
+        a_down = f32(R[2, 0]) * x + f32(R[2, 1]) * y + f32(R[2, 2])
+        return -d_n * inv_cell, d_e * inv_cell, a_down, np.sqrt(d_n * d_n + d_e * d_e)
+
+    def _newton(self, R, origin, x, y, t):
+        """Two Newton steps on g(t) = up(t) - h(t) from ``t`` for rays (x, y) (no compaction: boolean
+        indexing costs more than computing the few converged rays again). Returns (t, row, col, ok)."""
+        f32 = np.float32
+        r0, c0, u0 = origin
+        tol = f32(max(0.02 * self.dem.cell_m, 1e-3))
+        a_row, a_col, a_down, _ = self._ray_setup(R, x, y)
+        t = t.astype(f32)
+        for _ in range(2):
+            ri = r0 + t * a_row
+            ci = c0 + t * a_col
+            hg = _remap_flat(self._hg, ci, ri)
+            g = (u0 - t * a_down) - hg[:, 0]
+            # dg/dt = -d_down - (dh/drow d_row + dh/dcol d_col); a ray rising relative to the surface has no
+            # root nearby: the clamp sends it far off and the range check rejects it
+            dg = -a_down - (hg[:, 1] * a_row + hg[:, 2] * a_col)
+            t = t - g / np.minimum(dg, f32(-1e-3))
+        ri = r0 + t * a_row
+        ci = c0 + t * a_col
+        g = (u0 - t * a_down) - _remap_flat(self._h, ci, ri)
+        return t, ri, ci, np.abs(g) <= tol
+
+    def _march(self, R: np.ndarray, origin, x: np.ndarray, y: np.ndarray, max_iter: int = 400):
+        """Robust intersection of rays (x, y) (camera-frame, z = 1): returns flat (t, row, col, hit).
+
+        Per ray: t_lo, the furthest point known to be above the terrain (every step to it was safe), and
+        once a point below the terrain is found, t_hi; then the first crossing lies in [t_lo, t_hi] and is
+        found by false position clamped to shrink the bracket. Before that, steps are the largest safe
+        step from the bound maps, at least half a cell (a sliver of terrain thinner than that can be
+        missed, the price of not stalling on grazing rays), and, near the surface (g < 2 cells), a secant
+        step through the last two points above the terrain.
+        """
         dem = self.dem
         f32 = np.float32
         cell = f32(dem.cell_m)
         rows, cols = dem.shape
-        R = np.asarray(R_world_cam, np.float64)
-        c = np.asarray(p_cam_in_world, np.float64).reshape(3)
-        r0f, c0f = dem.rc_from_ne(c[0], c[1])
-        r0, c0, u0 = f32(r0f), f32(c0f), f32(-c[2])
-        if u0 < self._hmin:
-            raise ValueError(f"camera at height {u0:.1f} m is below the lowest terrain ({self._hmin:.1f} m)")
-        B = self.BLOCK_CELLS
-        tol = f32(max(0.02 * dem.cell_m, 1e-3))
-        # world NED ray directions d = R (x, y, 1); grid-space ray: row(t) = r0 + t * a_row,
-        # col(t) = c0 + t * a_col, up(t) = u0 - t * a_down
-        x, y = self._ray_x, self._ray_y
-        d_n = f32(R[0, 0]) * x + f32(R[0, 1]) * y + f32(R[0, 2])
-        d_e = f32(R[1, 0]) * x + f32(R[1, 1]) * y + f32(R[1, 2])
-        a_down = f32(R[2, 0]) * x + f32(R[2, 1]) * y + f32(R[2, 2])
-        a_row = d_n * (-1.0 / cell)
-        a_col = d_e * (1.0 / cell)
-        a_horiz = np.sqrt(d_n * d_n + d_e * d_e)
+        r0, c0, u0 = origin
+        tol = f32(max(0.02 * dem.cell_m, 1e-3))  # |height above terrain| accepted as a hit (m)
+        g_sec = f32(2.0 * dem.cell_m)
+        a_row, a_col, a_down, a_horiz = self._ray_setup(R, x, y)
         n = x.size
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            # largest t step that keeps the horizontal move within one block of the bound maps
-            a_tblock = (B * cell) / a_horiz
+            inv_h = f32(1.0) / a_horiz
             inv_down = np.where(a_down > 1e-6, 1.0 / a_down, np.inf).astype(f32)
+            a_min = (0.5 * cell) / np.sqrt(a_horiz * a_horiz + a_down * a_down)
             # start where the ray crosses the highest terrain (or at the camera if it is below that)
             a_t = np.maximum((u0 - f32(self._hmax)) * inv_down, 0.0)
             a_t = np.where(np.isfinite(a_t), a_t, 0.0).astype(f32)
             # parameter where the ray leaves the raster rectangle for good (slab test; -inf if never in)
-            tr = (np.float32(-0.5) - r0) / a_row, (f32(rows - 0.5) - r0) / a_row
-            tc = (np.float32(-0.5) - c0) / a_col, (f32(cols - 0.5) - c0) / a_col
+            tr = (f32(0.0) - r0) / a_row, (f32(rows - 1) - r0) / a_row
+            tc = (f32(0.0) - c0) / a_col, (f32(cols - 1) - c0) / a_col
             t_exit = np.minimum(np.fmax(tr[0], tr[1]), np.fmax(tc[0], tc[1]))
             t_exit = np.where(np.isnan(t_exit), np.inf, t_exit).astype(f32)
         idx = np.arange(n)
-        a_tprev = np.full(n, np.nan, f32)
-        a_gprev = np.full(n, np.nan, f32)
-        t_out = np.full(n, np.nan, f32)
-        r_out = np.full(n, np.nan, f32)
-        c_out = np.full(n, np.nan, f32)
+        nanv = np.full(n, np.nan, f32)
+        a_tlo, a_glo, a_tlo2, a_glo2 = nanv.copy(), nanv.copy(), nanv.copy(), nanv.copy()
+        a_thi, a_ghi = np.full(n, np.inf, f32), nanv.copy()
+        t_out = nanv.copy()
+        r_out = nanv.copy()
+        c_out = nanv.copy()
         hit_out = np.zeros(n, bool)
-        bounds = self._block_bounds
-        inv_b = f32(1.0 / B)
+        a_done = np.zeros(n, bool)
         first = True
         for _ in range(max_iter):
             ri = r0 + a_t * a_row
@@ -218,55 +323,58 @@ class VisibleRenderer:
             up = u0 - a_t * a_down
             g = up - hi  # height of the ray point above the terrain (m)
             conv = np.abs(g) <= tol
-            fin = conv | (a_t > t_exit)
+            fin = conv | ((a_t > t_exit) & (g > 0))
             if first:
-                # below the terrain at the start: the camera is inside the terrain
-                fin |= g < -tol
+                fin |= g < -tol  # below the terrain at the start: the camera is inside the terrain
                 first = False
+            fin &= ~a_done
             if fin.any():
                 f_idx = idx[fin]
                 t_out[f_idx] = a_t[fin]
                 r_out[f_idx] = ri[fin]
                 c_out[f_idx] = ci[fin]
                 hit_out[f_idx] = conv[fin]
-                keep = ~fin
-                if not keep.any():
+                a_done |= fin
+                n_done = int(a_done.sum())
+                if n_done == a_done.size:
                     break
-                idx, a_t, a_tprev, a_gprev = idx[keep], a_t[keep], a_tprev[keep], a_gprev[keep]
-                a_row, a_col, a_down, inv_down = a_row[keep], a_col[keep], a_down[keep], inv_down[keep]
-                a_horiz, a_tblock, t_exit = a_horiz[keep], a_tblock[keep], t_exit[keep]
-                ri, ci, g, up = ri[keep], ci[keep], g[keep], up[keep]
-            # conservative steps (never through the terrain), the larger of:
-            # (a) Lipschitz: |dg/dt| <= |d_down| + S |d_horiz| with S the slope bound of this block and its
-            #     neighbours; (b) down to the highest terrain of this block and its neighbours.
-            # Both hold only while the ray stays within one block, hence the cap ``a_tblock``.
-            sb = _remap_flat(bounds, ci * inv_b - 0.5, ri * inv_b - 0.5, nearest=True)
+                # finished rays are frozen in place; the active set is compacted only once half of it is
+                # done (boolean indexing costs as much as a few dozen arithmetic passes)
+                if n_done > a_done.size // 2:
+                    keep = ~a_done
+                    idx, a_t, a_tlo, a_glo = idx[keep], a_t[keep], a_tlo[keep], a_glo[keep]
+                    a_tlo2, a_glo2, a_thi, a_ghi = a_tlo2[keep], a_glo2[keep], a_thi[keep], a_ghi[keep]
+                    a_row, a_col, a_down, inv_down = a_row[keep], a_col[keep], a_down[keep], inv_down[keep]
+                    a_horiz, inv_h, a_min, t_exit = a_horiz[keep], inv_h[keep], a_min[keep], t_exit[keep]
+                    ri, ci, g, up, a_done = ri[keep], ci[keep], g[keep], up[keep], a_done[keep]
+            above = g > 0
+            a_tlo2 = np.where(above, a_tlo, a_tlo2)
+            a_glo2 = np.where(above, a_glo, a_glo2)
+            a_tlo = np.where(above, a_t, a_tlo)
+            a_glo = np.where(above, g, a_glo)
+            a_thi = np.where(above, a_thi, a_t)
+            a_ghi = np.where(above, a_ghi, g)
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                step = np.maximum(
-                    g / (np.abs(a_down) + sb[:, 0] * a_horiz + f32(1e-6)), (up - sb[:, 1]) * inv_down
-                )
-                step = np.minimum(step, a_tblock)
-                # secant from the previous point (above the terrain), accepted only near the surface where
-                # the linear model holds: larger than the safe step but at most 8 of them
-                sec = g * (a_t - a_tprev) / (a_gprev - g)
-                use_sec = (sec > step) & (sec < 8.0 * step + 4.0 * tol)
-                new_t = a_t + np.where(use_sec, sec, step)
-                below = g < -tol
-                if below.any():
-                    # secant overshoot below the terrain: false position between the last point above and
-                    # this one; the last point above stays the reference
-                    fp = a_tprev + a_gprev * (a_t - a_tprev) / (a_gprev - g)
-                    new_t = np.where(below, fp, new_t)
-                    a_tprev = np.where(below, a_tprev, a_t)
-                    a_gprev = np.where(below, a_gprev, g)
-                else:
-                    a_tprev, a_gprev = a_t, g
-            a_t = new_t.astype(f32, copy=False)
-        valid = (
-            hit_out & (t_out > 0) & (r_out >= 0) & (c_out >= 0) & (r_out <= rows - 1) & (c_out <= cols - 1)
-        )
-        H, W = self.intrinsics.height, self.intrinsics.width
-        return _Hit(t_out.reshape(H, W), r_out.reshape(H, W), c_out.reshape(H, W), valid.reshape(H, W))
+                # safe steps from each bound map (never through the terrain while within one block):
+                # (a) Lipschitz |dg/dt| <= |d_down| + S |d_horiz|, (b) down to the block's highest terrain
+                step = a_min
+                for B, bounds in self._bounds:
+                    inv_b = f32(1.0 / B)
+                    sb = _remap_flat(bounds, ci * inv_b - 0.5, ri * inv_b - 0.5, nearest=True)
+                    s_lip = g / (np.abs(a_down) + sb[:, 0] * a_horiz + f32(1e-6))
+                    s_top = (up - sb[:, 1]) * inv_down
+                    step = np.maximum(step, np.minimum(np.maximum(s_lip, s_top), (B * cell) * inv_h))
+                # near the surface: secant through the last two points above the terrain
+                sec = g * (a_tlo - a_tlo2) / (a_glo2 - g)
+                step = np.where((g < g_sec) & (sec > step), np.minimum(sec, 16.0 * step), step)
+                t_next = a_t + step
+                # bracketed rays: false position, kept 10 % inside the bracket so it always shrinks
+                fp = a_tlo + a_glo * (a_thi - a_tlo) / (a_glo - a_ghi)
+                w = a_thi - a_tlo
+                fp = np.clip(fp, a_tlo + 0.1 * w, a_thi - 0.1 * w)
+                t_next = np.where(np.isfinite(a_thi), fp, t_next)
+            a_t = np.where(a_done, a_t, t_next).astype(f32, copy=False)
+        return t_out, r_out, c_out, hit_out
 
     # ------------------------------------------------------------------------------------------------------
 

@@ -105,35 +105,31 @@ def _spectral_noise(
 ) -> np.ndarray:
     """(rows, cols) float32, zero mean, unit std: power spectrum ~ k^-beta between wavelengths lmin..lmax.
 
-    Generated on a grid no finer than lmin/4 (then upsampled bicubically), so long-wavelength fields are
-    cheap. The field is periodic over the generated tile, which is padded by 25 % to hide the wrap.
+    Generated on a grid 2^k times coarser than ``cell_m`` (at least 4 coarse cells per shortest wavelength)
+    and brought to ``cell_m`` with ``cv2.pyrUp`` (a smooth B-spline-like interpolator: bicubic upsampling
+    would leave slope kinks on the coarse grid that the shading makes visible as stripes). The field is
+    periodic over the generated tile, which is padded by 25 % to hide the wrap.
     """
     rows, cols = shape
-    gen_cell = max(cell_m, lmin_m / 4.0)
-    gr = int(np.ceil(rows * cell_m / gen_cell * 1.25)) + 2
-    gc = int(np.ceil(cols * cell_m / gen_cell * 1.25)) + 2
+    k = int(np.floor(np.log2(max(lmin_m / (4.0 * cell_m), 1.0))))
+    gen_cell = cell_m * 2**k
+    out_rows = -(-rows // 2**k) + 2
+    out_cols = -(-cols // 2**k) + 2
+    gr = int(np.ceil(out_rows * 1.25))
+    gc = int(np.ceil(out_cols * 1.25))
     ky = scipy.fft.fftfreq(gr, d=gen_cell)[:, None]
     kx = scipy.fft.rfftfreq(gc, d=gen_cell)[None, :]
-    k = np.sqrt(kx * kx + ky * ky)
+    kk = np.sqrt(kx * kx + ky * ky)
     with np.errstate(divide="ignore"):
-        amp = np.where((k >= 1.0 / lmax_m) & (k <= 1.0 / lmin_m), k ** (-beta / 2.0), 0.0)
+        amp = np.where((kk >= 1.0 / lmax_m) & (kk <= 1.0 / lmin_m), kk ** (-beta / 2.0), 0.0)
     spec = (rng.standard_normal(amp.shape) + 1j * rng.standard_normal(amp.shape)) * amp
-    field = scipy.fft.irfft2(spec, s=(gr, gc)).astype(np.float32)
-    # crop the part that maps onto the output grid (the rest is the wrap-around padding)
-    out_rows = int(np.ceil(rows * cell_m / gen_cell)) + 2
-    out_cols = int(np.ceil(cols * cell_m / gen_cell)) + 2
-    field = field[:out_rows, :out_cols]
-    if gen_cell > cell_m:
-        # source pixel i covers output position i * gen_cell / cell_m
-        scale = gen_cell / cell_m
-        xs = (np.arange(cols, dtype=np.float32) / scale)[None, :].repeat(rows, 0)
-        ys = (np.arange(rows, dtype=np.float32) / scale)[:, None].repeat(cols, 1)
-        field = cv2.remap(field, xs, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
-    else:
-        field = field[:rows, :cols]
-    field = field - field.mean()
+    field = scipy.fft.irfft2(spec, s=(gr, gc)).astype(np.float32)[:out_rows, :out_cols]
+    for _ in range(k):
+        field = cv2.pyrUp(field)
+    field = np.ascontiguousarray(field[:rows, :cols])
+    field -= field.mean()
     std = float(field.std())
-    return (field / std if std > 0 else field).astype(np.float32)
+    return field / np.float32(std) if std > 0 else field
 
 
 def _ridged(
