@@ -34,6 +34,18 @@ from sim_bridge.europa.world import EuropaWorld
 COARSE_STEP_PX = 8
 """Pixel spacing of the conservatively marched rays; the rest start from their interpolation."""
 
+SECANT_GAP_M = 0.05
+"""A marching ray takes secant (not only guaranteed-safe) steps once it is this close above the terrain."""
+
+COARSE_MAX_ITER = 40
+"""Marching steps of the coarse rays; the few still short of the surface hand their last point to Newton."""
+
+OCCLUSION_PROBE_M = 0.3
+"""A Newton hit deeper than this (m) beyond the nearest surrounding coarse hit is probed for occlusion."""
+
+OCCLUSION_PROBES = 3
+"""Points probed along the ray between the nearest coarse depth and the Newton hit."""
+
 
 def default_intrinsics() -> CameraIntrinsics:
     """640 x 480, 60 deg horizontal field of view (46.8 deg vertical), square pixels (fx = fy = 554.3).
@@ -67,8 +79,9 @@ class HeightfieldTracer:
     """Ray-heightfield intersection on a DEM (bilinear surface). Rays are given in NED and parametrised by
     their drop s (m below the ray origin): p(s) = origin + s * (g_n, g_e, 1), g = d_horiz / d_down."""
 
-    BLOCK_CELLS = 8
-    """Side of a block of the slope-bound map; a conservative step never moves further than one block."""
+    BLOCK_CELLS = (4, 32)
+    """Sides of the blocks of the slope-bound maps (fine: tight bound near steep features; coarse: long
+    steps over gentle terrain); a conservative step never moves further than one block of its map."""
 
     def __init__(self, dem: Dem) -> None:
         dem = dem.filled()
@@ -86,20 +99,24 @@ class HeightfieldTracer:
         d_row = cv2.Sobel(h, cv2.CV_32F, 0, 1, ksize=1, borderType=cv2.BORDER_REPLICATE) / np.float32(
             2 * cell
         )
-        self.geo = np.ascontiguousarray(np.stack([h, d_col, -d_row], axis=-1))
+        # 4 channels (the last unused): OpenCV's 4-channel remap is twice as fast as its 3-channel one
+        self.geo = np.ascontiguousarray(np.stack([h, d_col, -d_row, np.zeros_like(h)], axis=-1))
         self.h = h
-        # Lipschitz bound of the bilinear surface: per block the largest edge difference along each axis,
+        # Lipschitz bounds of the bilinear surface: per block the largest edge difference along each axis,
         # then the max over the block and its 8 neighbours (a step stays within one block)
-        B = self.BLOCK_CELLS
-        nbr, nbc = -(-rows // B), -(-cols // B)
-        gr = np.zeros((nbr * B, nbc * B), np.float32)
-        gc = np.zeros((nbr * B, nbc * B), np.float32)
-        gr[: rows - 1, :cols] = np.abs(np.diff(h, axis=0))
-        gc[:rows, : cols - 1] = np.abs(np.diff(h, axis=1))
-        br = gr.reshape(nbr, B, nbc, B).max(axis=(1, 3))
-        bc = gc.reshape(nbr, B, nbc, B).max(axis=(1, 3))
-        slope = np.sqrt(br * br + bc * bc) / np.float32(cell)
-        self.slope_blocks = cv2.dilate(slope, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+        self.slope_blocks: list[np.ndarray] = []
+        for B in self.BLOCK_CELLS:
+            nbr, nbc = -(-rows // B), -(-cols // B)
+            gr = np.zeros((nbr * B, nbc * B), np.float32)
+            gc = np.zeros((nbr * B, nbc * B), np.float32)
+            gr[: rows - 1, :cols] = np.abs(np.diff(h, axis=0))
+            gc[:rows, : cols - 1] = np.abs(np.diff(h, axis=1))
+            br = gr.reshape(nbr, B, nbc, B).max(axis=(1, 3))
+            bc = gc.reshape(nbr, B, nbc, B).max(axis=(1, 3))
+            slope = np.sqrt(br * br + bc * bc) / np.float32(cell)
+            self.slope_blocks.append(
+                cv2.dilate(slope, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+            )
 
     def _grid(self, origin_ned: np.ndarray, g_n: np.ndarray, g_e: np.ndarray):
         """Grid-space rays: row(s) = r0 + s * a_r, col(s) = c0 + s * a_c; and the origin's elevation e0.
@@ -118,14 +135,20 @@ class HeightfieldTracer:
         g_e: np.ndarray,
         tol_m: float = 0.005,
         max_iter: int = 400,
+        s_start: np.ndarray | None = None,
+        last: np.ndarray | None = None,
     ) -> np.ndarray:
         """Drop s (m) of the first terrain hit of each ray. (N,) float32, NaN = miss.
 
+        last: optional (N,) float32 output: the hit, or for rays still marching after ``max_iter`` steps
+        their last point (above the terrain, short of the hit), NaN for misses.
         origin_ned: (3,) or (N, 3) NED ray origins. g_n, g_e: (N,) horizontal run per metre of drop.
+        s_start: (N,) drops to start from (default: where each ray crosses the highest terrain); a ray
+        whose start is already below the terrain is a miss.
         Conservative steps gap / (1 + S run) (S: slope
         bound of the block, run: horizontal metres per metre of drop) never cross the terrain; near the
-        surface a secant step (at most 8 safe steps long) speeds convergence, and if it overshoots, false
-        position between the last point above and the one below. Rays that leave the raster, start inside
+        surface (``SECANT_GAP_M``) a secant step (clipped to 8 safe steps) speeds convergence; once it overshoots,
+        Illinois false position between the last point above and the first below. Rays that leave the raster, start inside
         the terrain or do not converge in ``max_iter`` steps are misses."""
         r0, c0, e0, a_r, a_c = self._grid(
             origin_ned, np.asarray(g_n, np.float32), np.asarray(g_e, np.float32)
@@ -133,16 +156,21 @@ class HeightfieldTracer:
         n = a_r.size
         r0, c0, e0 = (np.broadcast_to(x, (n,)).copy() for x in (r0, c0, e0))
         rows, cols = self.dem.shape
-        B = self.BLOCK_CELLS
         run = np.hypot(a_r, a_c) * np.float32(self.dem.cell_m)  # metres of horizontal run per metre of drop
         with np.errstate(divide="ignore"):
-            s_cap = np.where(run > 0, B * self.dem.cell_m / run, np.inf).astype(np.float32)
+            s_cap = np.where(run > 0, self.dem.cell_m / run, np.inf).astype(np.float32)  # per block cell
         s = np.maximum(e0 - np.float32(self.h_max), 0.0).astype(np.float32)
-        s_prev = np.full(n, np.nan, np.float32)  # last point known above the terrain, and its gap
-        gap_prev = np.full(n, np.nan, np.float32)
+        if s_start is not None:
+            s = np.maximum(s, np.asarray(s_start, np.float32))
+        # s_lo/g_lo: last point known above the terrain and its gap; s_hi/g_hi: first point found below
+        # it (NaN until the ray has overshot); side: which end the last bracketed step replaced (Illinois)
+        s_lo = np.full(n, np.nan, np.float32)
+        g_lo = np.full(n, np.nan, np.float32)
+        s_hi = np.full(n, np.nan, np.float32)
+        g_hi = np.full(n, np.nan, np.float32)
+        side = np.zeros(n, np.int8)
         out = np.full(n, np.nan, np.float32)
         idx = np.arange(n)
-        nbr, nbc = self.slope_blocks.shape
         tol = np.float32(tol_m)
         for _ in range(max_iter):
             ri = r0 + s * a_r
@@ -150,31 +178,58 @@ class HeightfieldTracer:
             gap = e0 - s - lookup(self.h, ri, ci)
             off = (ri < 0) | (ri > rows - 1) | (ci < 0) | (ci > cols - 1)
             hit = (np.abs(gap) <= tol) & ~off
-            below = gap < -tol
+            above = gap > tol
+            bracketed = np.isfinite(s_hi)
             # off the raster and moving away from it, or below the terrain with no point above: a miss
             gone = (off & (((ri < 0) & (a_r <= 0)) | ((ri > rows - 1) & (a_r >= 0))
-                           | ((ci < 0) & (a_c <= 0)) | ((ci > cols - 1) & (a_c >= 0)))) | (below & np.isnan(s_prev))  # fmt: skip
+                           | ((ci < 0) & (a_c <= 0)) | ((ci > cols - 1) & (a_c >= 0)))) | (~above & np.isnan(s_lo))  # fmt: skip
             out[idx[hit]] = s[hit]
             keep = ~(hit | gone)
             if not keep.any():
                 break
-            S = self.slope_blocks[
-                np.clip((ri * (1.0 / B)).astype(np.int32), 0, nbr - 1),
-                np.clip((ci * (1.0 / B)).astype(np.int32), 0, nbc - 1),
-            ]
-            safe = np.minimum(np.maximum(gap, 0.0) / (1.0 + S * run), s_cap)
+            if last is not None:
+                last[idx[keep]] = np.where(np.isfinite(s_hi[keep]), s_lo[keep], s[keep])
+            # bracket bookkeeping (Illinois: halve the stale end's gap when the same end moves twice)
+            new_hi = ~above & ~hit
+            g_lo = np.where(bracketed & new_hi & (side == -1), 0.5 * g_lo, g_lo)
+            g_hi = np.where(bracketed & above & (side == 1), 0.5 * g_hi, g_hi)
+            side = np.where(bracketed & above, 1, np.where(new_hi, -1, side)).astype(np.int8)
+            s_hi = np.where(new_hi, s, s_hi)
+            g_hi = np.where(new_hi, gap, g_hi)
+            g_pos = np.maximum(gap, 0.0)
+            safe = np.zeros_like(gap)
+            for B, blocks in zip(self.BLOCK_CELLS, self.slope_blocks):
+                nbr, nbc = blocks.shape
+                S = blocks[
+                    np.clip((ri * (1.0 / B)).astype(np.int32), 0, nbr - 1),
+                    np.clip((ci * (1.0 / B)).astype(np.int32), 0, nbc - 1),
+                ]
+                safe = np.maximum(safe, np.minimum(g_pos / (1.0 + S * run), B * s_cap))
             with np.errstate(divide="ignore", invalid="ignore"):
-                sec = gap * (s - s_prev) / (gap_prev - gap)
-                use_sec = (gap_prev > gap) & (sec > safe) & (sec < 8.0 * safe + 4.0 * tol)
-                s_new = np.where(use_sec, s + sec, s + safe)
-                s_new = np.where(below, s_prev + gap_prev * (s - s_prev) / (gap_prev - gap), s_new)
-            s_prev = np.where(below, s_prev, s)
-            gap_prev = np.where(below, gap_prev, gap)
-            s = s_new.astype(np.float32)
-            idx, s, s_prev, gap_prev = idx[keep], s[keep], s_prev[keep], gap_prev[keep]
+                # not bracketed yet: within SECANT_GAP_M of the surface, a secant step from the last point
+                # above, clipped to [1, 8] safe steps (so short that no terrain can hide in its overshoot)
+                sec = gap * (s - s_lo) / (g_lo - gap)
+                use = (g_lo > gap) & np.isfinite(sec) & (gap < SECANT_GAP_M)
+                sec = np.where(use, np.clip(sec, safe, 8.0 * safe), safe)
+                s_lo = np.where(above, s, s_lo)
+                g_lo = np.where(above, gap, g_lo)
+                # bracketed: false position between the two ends
+                fp = s_lo - g_lo * (s_hi - s_lo) / (g_hi - g_lo)
+            s = np.where(np.isfinite(s_hi), fp, s + sec).astype(np.float32)
+            idx, s, s_lo, g_lo, s_hi, g_hi, side = (
+                x[keep] for x in (idx, s, s_lo, g_lo, s_hi, g_hi, side)
+            )  # fmt: skip
             r0, c0, e0 = r0[keep], c0[keep], e0[keep]
             a_r, a_c, run, s_cap = a_r[keep], a_c[keep], run[keep], s_cap[keep]
+        if last is not None:
+            last[np.isfinite(out)] = out[np.isfinite(out)]
         return out
+
+    def gap(self, origin_ned: np.ndarray, g_n: np.ndarray, g_e: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """Height (m) of the ray points at drops ``s`` above the terrain (negative inside it)."""
+        r0, c0, e0, a_r, a_c = self._grid(np.asarray(origin_ned, float).reshape(3), g_n, g_e)
+        s = np.asarray(s, np.float32)
+        return e0 - s - lookup(self.h, r0 + s * a_r, c0 + s * a_c)
 
     def newton(
         self,
@@ -184,7 +239,7 @@ class HeightfieldTracer:
         s0: np.ndarray,
         tol_m: float = 0.005,
         full_iters: int = 2,
-        max_iters: int = 6,
+        max_iters: int = 8,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Refine drops ``s0`` by Newton steps on gap(s) = e0 - s - h(p(s)): ``full_iters`` on every ray,
         then up to ``max_iters`` in all on those whose |gap| still exceeds ``tol_m``.
@@ -216,6 +271,22 @@ class HeightfieldTracer:
             cf[idx] = ok
             idx = idx[~ok]
         return sf.reshape(s.shape), cf.reshape(s.shape)
+
+
+def _pow(x: np.ndarray, k: float) -> np.ndarray:
+    """x**k; by repeated squaring when k is a small whole number (several times faster than np.power)."""
+    if float(k).is_integer() and 1 <= k <= 64:
+        n = int(k)
+        result = None
+        base = x
+        while n:
+            if n & 1:
+                result = base if result is None else result * base
+            n >>= 1
+            if n:
+                base = base * base
+        return result
+    return np.power(x, np.float32(k))
 
 
 class PixelGrid:
@@ -266,12 +337,15 @@ def _intersect(
 ) -> _Hits:
     p = np.asarray(p_cam_in_world, float).reshape(3)
     H, W = grid.intr.height, grid.intr.width
-    # 1. coarse rays, marched
+    # 1. coarse rays, marched (a few slow, near-grazing ones are left short of the surface: their last
+    # point is still a fine start for Newton)
     gnc, gec = grid.runs(R_world_cam, grid.xc, grid.yc)
     s_c = np.full(gnc.size, np.nan, np.float32)
     ok_c = np.isfinite(gnc.ravel())
     if ok_c.any():
-        s_c[ok_c] = tracer.march(p, gnc.ravel()[ok_c], gec.ravel()[ok_c], tol_m=0.02)
+        part = np.full(int(ok_c.sum()), np.nan, np.float32)
+        tracer.march(p, gnc.ravel()[ok_c], gec.ravel()[ok_c], tol_m=0.02, max_iter=COARSE_MAX_ITER, last=part)
+        s_c[ok_c] = part
     s_c = s_c.reshape(gnc.shape)
     gn, ge = grid.runs(R_world_cam, grid.x, grid.y)
     down = np.isfinite(gn)
@@ -285,10 +359,52 @@ def _intersect(
     gn = np.where(down, gn, 0.0).astype(np.float32)
     ge = np.where(down, ge, 0.0).astype(np.float32)
     s, conv = tracer.newton(p, gn, ge, s0)
-    # 3. where Newton has not settled (occlusion edges, steep walls), march conservatively
-    bad = ~conv & down
+    # 3. Newton finds a surface near its start, not necessarily the first along the ray. Where its hit is
+    # deeper than the nearest of the four coarse rays around the pixel, the ray is probed at a few points
+    # in between; if one is inside the terrain (an occluding edge), or Newton has not settled, the pixel
+    # is marched from just above that nearest depth.
+    k = COARSE_STEP_PX
+    near_c = np.minimum.reduce((s_fill[:-1, :-1], s_fill[1:, :-1], s_fill[:-1, 1:], s_fill[1:, 1:]))
+    near = np.repeat(np.repeat(near_c, k, axis=0), k, axis=1)[:H, :W]
+    deep = conv & down & (s > near + OCCLUSION_PROBE_M)
+    occluded = np.zeros((H, W), bool)
+    if deep.any():
+        idx = np.flatnonzero(deep)
+        sd, nd = s.ravel()[idx], near.ravel()[idx]
+        r0, c0 = tracer.dem.rc_from_ne(p[0], p[1])
+        a_r = -gn.ravel()[idx] / np.float32(tracer.dem.cell_m)
+        a_c = ge.ravel()[idx] / np.float32(tracer.dem.cell_m)
+        hit_in = np.zeros(idx.size, bool)
+        for j in range(1, OCCLUSION_PROBES + 1):
+            sj = nd + (sd - nd) * np.float32(j / (OCCLUSION_PROBES + 1))
+            gap = (
+                np.float32(-p[2])
+                - sj
+                - lookup(tracer.h, np.float32(r0) + sj * a_r, np.float32(c0) + sj * a_c)
+            )
+            hit_in |= gap < -0.01
+        occluded.ravel()[idx[hit_in]] = True
+    bad = (~conv | occluded) & down
     if bad.any():
-        s[bad] = tracer.march(p, gn[bad], ge[bad])
+        # rays that have not converged within the step budget (near-grazing down a steep wall) keep their
+        # last point, a little short of the surface; rays that started inside the terrain go again from the top
+        gb, eb = gn[bad], ge[bad]
+        s_b = np.full(gb.size, np.nan, np.float32)
+        tracer.march(
+            p, gb, eb, s_start=np.maximum(near[bad] - OCCLUSION_PROBE_M, 0.0), max_iter=100, last=s_b
+        )
+        lost = np.isnan(s_b)
+        if lost.any():
+            s_l = np.full(int(lost.sum()), np.nan, np.float32)
+            tracer.march(p, gb[lost], eb[lost], max_iter=200, last=s_l)
+            s_b[lost] = s_l
+        # the unconverged ones: Newton from their last point (above the surface, usually close to it)
+        short = np.isfinite(s_b)
+        short[short] = np.abs(tracer.gap(p, gb[short], eb[short], s_b[short])) > 0.02
+        if short.any():
+            s_n, ok_n = tracer.newton(p, gb[short], eb[short], s_b[short])
+            s_b[np.flatnonzero(short)[ok_n & (s_n >= s_b[short])]] = s_n[ok_n & (s_n >= s_b[short])]
+        s[bad] = s_b
     r0, c0 = tracer.dem.rc_from_ne(p[0], p[1])
     inv = np.float32(1.0 / tracer.dem.cell_m)
     row = np.float32(r0) - s * gn * inv
@@ -438,12 +554,13 @@ class EuropaCameras:
             alpha = 1.0 - np.arccos(np.clip(cos_g, -1.0, 1.0)) * np.float32(1.0 / np.pi)
             nl = n_e * L[0] + n_n * L[1] + n_u * L[2]
             rv = 2.0 * nl * nv - cos_g  # R . V with R = 2 (N.L) N - L
-            spec = rho_s * np.power(np.maximum(rv, 0.0), np.float32(refl.sharpness_k))
-            lobe = alpha * albedo * np.maximum(nl, 0.0) + (1.0 - alpha) * np.where(nl > 0, spec, 0.0)
+            spec = rho_s * _pow(np.maximum(rv, 0.0), refl.sharpness_k) * (nl > 0)
+            lobe = alpha * albedo * np.maximum(nl, 0.0) + (1.0 - alpha) * spec
             vis += np.float32(intensity) * lit * lobe
-        vis[~hits.valid] = np.nan
-        temp = temp.copy()
-        temp[~hits.valid] = np.nan
+        if not hits.valid.all():
+            vis[~hits.valid] = np.nan
+            temp = temp.copy()
+            temp[~hits.valid] = np.nan
         return vis, temp
 
     def render(

@@ -133,16 +133,6 @@ def _polyline(rng: np.random.Generator, length_m: float, step_m: float, wander_r
     return np.concatenate([[[0.0, 0.0]], np.cumsum(steps, axis=0)])
 
 
-def _dist_to_polyline(x: np.ndarray, y: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Distance from each (x, y) to the polyline ``pts`` (n, 2)."""
-    d = np.full(np.broadcast(x, y).shape, np.inf)
-    for a, b in zip(pts[:-1], pts[1:]):
-        ab = b - a
-        t = np.clip(((x - a[0]) * ab[0] + (y - a[1]) * ab[1]) / max(ab @ ab, 1e-12), 0.0, 1.0)
-        d = np.minimum(d, np.hypot(x - a[0] - t * ab[0], y - a[1] - t * ab[1]))
-    return d
-
-
 def _add_polyline_feature(
     field: np.ndarray,
     cell_m: float,
@@ -151,29 +141,37 @@ def _add_polyline_feature(
     half_width_m: float,
     profile,
 ) -> None:
-    """Add ``profile(distance_m)`` around the polyline ``pts`` (metres relative to grid point ``rc``)."""
-    # process in chunks of the path so each window stays small
-    chunk = 12
-    for i in range(0, len(pts) - 1, chunk):
-        seg = pts[i : i + chunk + 1]
-        cx, cy = seg.mean(axis=0)
-        rad = np.max(np.hypot(seg[:, 0] - cx, seg[:, 1] - cy)) + half_width_m
-        r_c, c_c = rc[0] - cy / cell_m, rc[1] + cx / cell_m
-        sl = _window(field.shape, r_c, c_c, rad / cell_m + 1)
-        if sl is None:
-            continue
-        x, y = _local_xy(sl, rc[0], rc[1], cell_m)
-        d = _dist_to_polyline(x, y, seg)
-        # a cell near the joint of two chunks is counted once, by its nearest chunk
-        before = pts[max(i - chunk, 0) : i + 1]
-        after = pts[i + chunk : i + 2 * chunk + 1]
-        own = np.ones(d.shape, bool)
-        if i > 0:
-            own &= d <= _dist_to_polyline(x, y, before)
-        if len(after) >= 2:
-            own &= d < _dist_to_polyline(x, y, after)
-        val = np.where(own & (d < half_width_m), profile(d), 0.0)
-        field[sl] += val
+    """Add ``profile(distance_m)`` within ``half_width_m`` of the polyline ``pts`` ((n, 2) east, north in
+    metres relative to the grid point ``rc``). Candidate cells come from a thick raster line (OpenCV), their
+    distance from the nearest point of the path resampled every cell / 4 (SciPy KD-tree)."""
+    rows, cols = field.shape
+    r_pts = rc[0] - pts[:, 1] / cell_m
+    c_pts = rc[1] + pts[:, 0] / cell_m
+    pad = half_width_m / cell_m + 2
+    r0, r1 = max(int(np.floor(r_pts.min() - pad)), 0), min(int(np.ceil(r_pts.max() + pad)) + 1, rows)
+    c0, c1 = max(int(np.floor(c_pts.min() - pad)), 0), min(int(np.ceil(c_pts.max() + pad)) + 1, cols)
+    if r0 >= r1 or c0 >= c1:
+        return
+    mask = np.zeros((r1 - r0, c1 - c0), np.uint8)
+    shift = 4  # sub-pixel bits of cv2.polylines
+    poly = np.round(np.stack([c_pts - c0, r_pts - r0], 1) * (1 << shift)).astype(np.int32)
+    cv2.polylines(
+        mask, [poly], False, 1, thickness=int(2 * np.ceil(pad)) + 1, lineType=cv2.LINE_8, shift=shift
+    )
+    rr, cc = np.nonzero(mask)
+    if rr.size == 0:
+        return
+    # resample the path densely so the nearest sample is within cell / 8 of the true nearest point
+    seg = np.diff(np.stack([r_pts, c_pts], 1), axis=0)
+    n_sub = np.maximum(np.ceil(np.hypot(seg[:, 0], seg[:, 1]) * 4).astype(int), 1)
+    dense = np.concatenate(
+        [np.stack([r_pts[i] + seg[i, 0] * np.arange(k) / k, c_pts[i] + seg[i, 1] * np.arange(k) / k], 1)
+         for i, k in enumerate(n_sub)] + [[[r_pts[-1], c_pts[-1]]]]
+    )  # fmt: skip
+    d, _ = cKDTree(dense).query(np.stack([rr + r0, cc + c0], 1), distance_upper_bound=half_width_m / cell_m)
+    d_m = d * cell_m
+    near = d_m < half_width_m
+    field[rr[near] + r0, cc[near] + c0] += profile(d_m[near])
 
 
 def _soft_disc(
@@ -198,17 +196,21 @@ def europa_heights(
     def rand_rc() -> tuple[float, float]:
         return float(rng.uniform(0, rows - 1)), float(rng.uniform(0, cols - 1))
 
-    # --- large scale: fBm background, hills, valleys (scaled together at the end) ---
-    base = fbm_field(rng, shape, cell_m, opts.fbm_hurst, opts.fbm_outer_scale_m, opts.fbm_inner_scale_m)
-    large = np.zeros(shape)
+    # --- large scale: fBm background, hills, valleys (scaled together at the end), built on a ~1 m grid
+    # (they have no detail below a few metres) and interpolated to the cells ---
+    f = max(int(round(1.0 / cell_m)), 1)
+    shape_c = (-(-rows // f), -(-cols // f))
+    cell_c = cell_m * f
+    base = fbm_field(rng, shape_c, cell_c, opts.fbm_hurst, opts.fbm_outer_scale_m, opts.fbm_inner_scale_m)
+    large = np.zeros(shape_c)
     for _ in range(_count(rng, opts.hill_count, area_scale)):
         d = float(rng.uniform(*opts.hill_diam_m))
         h = d * float(rng.uniform(*opts.hill_height_frac))
-        r, c = rand_rc()
-        sl = _window(shape, r, c, 1.5 * d / cell_m)
+        r, c = float(rng.uniform(0, shape_c[0] - 1)), float(rng.uniform(0, shape_c[1] - 1))
+        sl = _window(shape_c, r, c, 1.5 * d / cell_c)
         if sl is None:
             continue
-        x, y = _local_xy(sl, r, c, cell_m)
+        x, y = _local_xy(sl, r, c, cell_c)
         ang = rng.uniform(0, np.pi)
         ax = np.cos(ang) * x + np.sin(ang) * y
         ay = -np.sin(ang) * x + np.cos(ang) * y
@@ -219,14 +221,15 @@ def europa_heights(
         w = float(rng.uniform(*opts.valley_width_m))
         depth = w * float(rng.uniform(*opts.valley_depth_frac))
         pts = _polyline(rng, float(rng.uniform(150, 400)), 4.0, 0.08)
+        rc = (float(rng.uniform(0, shape_c[0] - 1)), float(rng.uniform(0, shape_c[1] - 1)))
         _add_polyline_feature(
-            large,
-            cell_m,
-            rand_rc(),
-            pts,
-            w,
-            lambda d, w=w, depth=depth: -depth * np.cos(0.5 * np.pi * d / w) ** 2,
+            large, cell_c, rc, pts, w, lambda d, w=w, depth=depth: -depth * np.cos(0.5 * np.pi * d / w) ** 2
         )
+    large_c = base + large / max(large.std(), 1e-9) * 0.6
+    large_all = cv2.resize(
+        large_c.astype(np.float32), (shape_c[1] * f, shape_c[0] * f), interpolation=cv2.INTER_LINEAR
+    )
+    large_all = large_all[:rows, :cols].astype(np.float64)
 
     # --- small and medium features, physical sizes, not rescaled ---
     small = opts.roughness_m * fbm_field(rng, shape, cell_m, 0.8, 6.0)
@@ -273,7 +276,7 @@ def europa_heights(
         h = float(rng.uniform(*opts.penitente_height_m))
         lam = float(rng.uniform(*opts.penitente_spacing_m))
         # blades run east-west (along the equatorial Sun's path), waviness from a smooth phase field
-        phase = 0.6 * fbm_field(rng, w.shape, cell_m, 0.9, 15.0)
+        phase = 0.25 * fbm_field(rng, w.shape, cell_m, 0.9, 15.0)
         u = y / lam + phase
         v = x / (1.7 * lam) + 0.5 * np.floor(u)  # breaks each ridge into offset blades
         tri_u = 1.0 - 2.0 * np.abs(u - np.floor(u) - 0.5)
@@ -304,8 +307,7 @@ def europa_heights(
         hb = diam * float(rng.uniform(0.3, 0.7))
         small[sl] += hb * np.sqrt(np.clip(1.0 - rn**6, 0.0, 1.0))
 
-    # scale the large-scale part so that max - min equals the target relief
-    large_all = base + large / max(large.std(), 1e-9) * 0.6
+    # scale the large-scale part so that the relief equals the target
 
     def relief_gap(scale: float) -> float:
         lo_h, hi_h = np.percentile(scale * large_all + small, [0.05, 99.95])
