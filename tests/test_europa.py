@@ -234,3 +234,34 @@ def test_altimeter_noise_and_bias():
     assert np.array_equal(r2, rng_m)
     _, r3 = altimeter_samples(traj, world, rate_hz=10.0, noise=AltimeterNoise(), seed=6)
     assert not np.allclose(r3, rng_m)
+
+
+def test_jupiter_lights_the_visible_only_when_it_can_reach_a_grey_level():
+    base = _flat_world()
+    assert len(EuropaCameras(base)._sources) == 1  # 0.0001 W/m^2 vs the Sun's 50: below one grey level
+    illum = Illumination(jupiter_reflected_w_m2=25.0)  # a test sky where Jupiter's light is half the Sun's
+    bright = _flat_world(illum=illum)
+    cams = EuropaCameras(bright, visible_noise=None, thermal_noise=None)
+    assert len(cams._sources) == 2
+    R, p = camera_pose(LEVEL_NORTH, np.array([0.0, 0.0, -40.0]))
+    v0, _ = EuropaCameras(base, visible_noise=None, thermal_noise=None).radiance(R, p)
+    v1, _ = cams.radiance(R, p)
+    J = illum.jupiter.direction_enu  # nadir pixel: view vector straight up
+    alpha = 1.0 - np.arccos(J[2]) / np.pi
+    rv = 2 * J[2] * 1.0 - J[2]  # R.V for a level facet seen from above
+    refl = Reflectance()
+    expected = 0.5 * (alpha * 0.68 * J[2] + (1 - alpha) * refl.rho_s * rv**refl.sharpness_k)
+    assert v1[240, 320] - v0[240, 320] == pytest.approx(expected, rel=0.02)
+
+
+def test_albedo_coupling_warms_dark_ice():
+    h = np.zeros((40, 40), np.float32)
+    albedo = np.full((40, 40), 0.8, np.float32)
+    albedo[:, :20] = 0.5
+    illum = Illumination()
+    t0 = surface_temperature(h, 0.5, illum, ThermalOptions(smoothing_passes=0), albedo=albedo)
+    assert np.ptp(t0) < 1e-3  # the paper's single Bond albedo: no albedo trace in the thermal image
+    t1 = surface_temperature(
+        h, 0.5, illum, ThermalOptions(smoothing_passes=0, albedo_coupling=1.0), albedo=albedo
+    )
+    assert t1[:, :20].mean() > t1[:, 20:].mean() + 5.0

@@ -64,6 +64,9 @@ class ThermalOptions:
     emissivity: float = 0.94  # grey-body emissivity (paper)
     smoothing_passes: int = 4  # 3x3 box passes on the temperature ("several smoothing passes");
     # 4 passes spread heat over ~1.6 cells rms (0.4 m at 0.25 m cells)
+    albedo_coupling: float = 0.0  # local Bond albedo = bond_albedo * (1 + c (albedo / mean - 1)): 0 keeps
+    # the paper's single 0.68; 1 makes the darker splotches and striae of the albedo map absorb
+    # proportionally more (physically expected, e.g. Europa's darker terrains are warmer)
     night_temperature_k: float = 80.0  # adds the flux eps*sigma*T^4 that keeps unlit ice at this
     # temperature (Galileo PPR night-side ~80-95 K): stands for thermal inertia and re-radiation from
     # neighbouring terrain, which the paper's instantaneous model leaves out. 0 = the paper's model.
@@ -88,17 +91,23 @@ def absorbed_flux(
     illum: Illumination,
     opts: ThermalOptions,
     sun_lit: np.ndarray | None = None,
+    albedo: np.ndarray | None = None,
 ) -> np.ndarray:
     """(rows, cols) float32 absorbed flux (W/m^2) incl. the night-side term of ``opts``.
 
-    sun_lit: optional precomputed ``lit_fraction`` for the Sun (it is also used by the visible renderer)."""
+    sun_lit: optional precomputed ``lit_fraction`` for the Sun (it is also used by the visible renderer).
+    albedo: the (visible) albedo map, used only when ``opts.albedo_coupling`` is not 0."""
     sun, jup = illum.sun, illum.jupiter
     lit_s = lit_fraction(height_m, cell_m, sun) if sun_lit is None else sun_lit
     lit_j = lit_fraction(height_m, cell_m, jup)
     incident = sun.intensity * facet_cosines(height_m, cell_m, sun.direction_enu) * lit_s
     incident += jup.intensity * facet_cosines(height_m, cell_m, jup.direction_enu) * lit_j
     floor = opts.emissivity * STEFAN_BOLTZMANN_W_M2_K4 * opts.night_temperature_k**4
-    return ((1.0 - opts.bond_albedo) * incident + floor).astype(np.float32)
+    bond: float | np.ndarray = opts.bond_albedo
+    if opts.albedo_coupling and albedo is not None:
+        rel = albedo / float(np.mean(albedo)) - 1.0
+        bond = np.clip(opts.bond_albedo * (1.0 + opts.albedo_coupling * rel), 0.0, 0.99)
+    return ((1.0 - bond) * incident + floor).astype(np.float32)
 
 
 def equilibrium_temperature(absorbed_w_m2: np.ndarray, emissivity: float) -> np.ndarray:
@@ -114,9 +123,11 @@ def surface_temperature(
     illum: Illumination,
     opts: ThermalOptions,
     sun_lit: np.ndarray | None = None,
+    albedo: np.ndarray | None = None,
 ) -> np.ndarray:
     """(rows, cols) float32 surface temperature (K): equilibrium, then ``opts.smoothing_passes`` 3x3 passes."""
-    t = equilibrium_temperature(absorbed_flux(height_m, cell_m, illum, opts, sun_lit), opts.emissivity)
+    flux = absorbed_flux(height_m, cell_m, illum, opts, sun_lit, albedo)
+    t = equilibrium_temperature(flux, opts.emissivity)
     for _ in range(opts.smoothing_passes):
         t = cv2.blur(t, (3, 3), borderType=cv2.BORDER_REPLICATE)
     return t

@@ -2,14 +2,32 @@
 
 The paper says only: ten trajectories over the 400 m site, "two linear motions as well as an S-shape,
 half-ellipse and half-circle", thirty trials each with additive Gaussian actuation noise, cameras at
-1 fps, and its error plots run to ~160-180 s. The table below is ours (see ``TRAJECTORY_TABLE``): every
-trajectory lasts 180 s, starts 90-140 m above the local terrain and ends 25-40 m above it, at 0.5-2 m/s,
-and keeps the whole camera footprint on the terrain. Heights are above the terrain smoothed over ~10 m
-(so a hill under the path lifts the path, a block does not).
+1 fps, and its error plots run to ~160-180 s. No lengths, heights or speeds are given. The table below is
+ours (``TRAJECTORY_TABLE``): every trajectory lasts 180 s, starts 60-140 m above the local terrain and
+ends 25-60 m above it, at 0.8-1.8 m/s, and keeps the whole camera footprint on the terrain (>= 11 m from
+the edge, checked for seeds 0-3). Heights are above the terrain smoothed over ~10 m (so a hill under the
+path lifts the path, a block does not). Heading follows the horizontal velocity, except "7" (north).
 
-Actuation noise: the nominal path is sampled at knots every ``knot_s`` seconds; each knot's position gets
-independent N(0, actuation_sigma^2) noise per axis and its heading N(0, yaw_sigma^2); the C2 spline through
-the noisy knots is the flown (true) trajectory, so the IMU sees the perturbations.
+=====  ==============================================  ======  ==============  ===========
+name   shape                                            length  height (m)      mean speed
+=====  ==============================================  ======  ==============  ===========
+1      linear, south to north, descending              226 m   120 -> 30       1.3 m/s
+2      linear, south-west to north-east, descending    282 m   110 -> 35       1.6 m/s
+3      S-shape northward, +-50 m sideways              305 m   100 -> 30       1.7 m/s
+4      half-ellipse, semi-axes 100 m (N) x 70 m (E)    283 m   100 -> 30       1.6 m/s
+5      half-circle, radius 90 m                         293 m    90 -> 30       1.6 m/s
+6      linear, east to west, constant height            222 m    60 -> 60       1.2 m/s
+7      steep descent with 60 m northward drift          137 m   140 -> 25       0.8 m/s
+8      descending spiral, one turn, radius 70 -> 25 m   318 m   110 -> 30       1.8 m/s
+9      S-shape westward, +-40 m sideways                268 m    80 -> 40       1.5 m/s
+10     dog-leg: north 100 m, rounded turn, east 100 m  244 m   100 -> 30       1.4 m/s
+=====  ==============================================  ======  ==============  ===========
+
+Actuation noise: the nominal path is sampled at knots every ``knot_s`` (5) seconds; each knot's position
+gets independent N(0, actuation_sigma^2) noise per axis (0.3 m) and its heading N(0, yaw_sigma^2) (1 deg);
+the C2 spline through the noisy knots is the flown (true) trajectory, so the IMU sees the perturbations.
+The body tilts with the thrust (multicopter-like lander): ~3 deg on average, up to ~10 deg, in Europa's
+1.315 m/s^2 gravity.
 """
 
 from __future__ import annotations
@@ -25,6 +43,9 @@ from sim_bridge.trajectory import Trajectory
 
 DURATION_S = 180.0
 """Length of every trajectory (the paper's error plots run to about 180 s)."""
+
+CAMERA_RATE_HZ = 1.0
+"""Frame rate of the synchronised camera pair in paper 2 (1 fps)."""
 
 # name -> (description, u -> (north_m, east_m), height above ground at start and end (m))
 TRAJECTORY_TABLE: dict[
@@ -75,7 +96,7 @@ TRAJECTORY_TABLE: dict[
         40.0,
     ),
     "10": (
-        "dog-leg: north 110 m, rounded turn, east 110 m",
+        "dog-leg: north 100 m, rounded turn, east 100 m",
         lambda u: _dogleg(u),
         100.0,
         30.0,
@@ -138,7 +159,7 @@ def paper_trajectories(
 ) -> dict[str, Trajectory]:
     """The ten trajectories, keys "1".."10", each with its own Gaussian actuation noise drawn from ``seed``.
 
-    actuation_sigma: m per axis at each knot (0.3 m every 5 s: accelerations ~0.05 m/s^2, tilts ~2 deg in
+    actuation_sigma: m per axis at each knot (0.3 m every 5 s: tilts ~3 deg on average, up to ~10 deg, in
     Europa's 1.315 m/s^2 gravity). Bodies tilt with thrust (multicopter-like model of the lander)."""
     out: dict[str, Trajectory] = {}
     for i, name in enumerate(TRAJECTORY_TABLE):

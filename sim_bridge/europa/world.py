@@ -94,7 +94,7 @@ def make_europa(
     illum = opts.illumination
     sun_lit = lit_fraction(heights, cell_m, illum.sun)
     jup_lit = lit_fraction(heights, cell_m, illum.jupiter)
-    temperature = surface_temperature(heights, cell_m, illum, opts.thermal, sun_lit=sun_lit)
+    temperature = surface_temperature(heights, cell_m, illum, opts.thermal, sun_lit=sun_lit, albedo=albedo)
     return EuropaWorld(
         dem, albedo, temperature, sun_lit, jup_lit, illum, opts.thermal, opts.reflectance, seed
     )
