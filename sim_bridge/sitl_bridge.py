@@ -247,6 +247,11 @@ class SitlCameraBridge:
             self._thread = None
         self.transport.close()
 
+    @property
+    def stopped(self) -> bool:
+        """Whether ``stop()`` was called."""
+        return self._stop.is_set()
+
     def close(self) -> None:
         """``stop()`` and undeclare the Zenoh publisher."""
         self.stop()
@@ -457,6 +462,7 @@ class SitlCameraBridge:
             ground = float(self.scene.dem.height_at(p_scene[0], p_scene[1])[0])
             out["p_ned_m"] = [round(float(v), 2) for v in pose.p_ned_m]
             out["yaw_deg"] = round(math.degrees(float(pose.rpy_rad[2])), 1)
+            out["speed_mps"] = round(float(np.linalg.norm(pose.v_ned_mps)), 2)
             out["agl_m"] = round(float(-p_scene[2] - ground), 1) if math.isfinite(ground) else None
         return out
 
@@ -574,7 +580,12 @@ def add_sitl_camera_parser(sub: Any) -> None:
         "(default %(default)s: ArduPilot SITL SERIAL2; PX4 SITL: udpin:0.0.0.0:14540)",
     )
     p.add_argument("--planet", default="earth", choices=["earth", "mars", "moon", "europa"])
-    p.add_argument("--airborne-agl", type=float, default=10.0, help="re-print the command once above this")
+    p.add_argument(
+        "--hover-agl",
+        type=float,
+        default=10.0,
+        help="re-print the command once the vehicle hovers (< 0.5 m/s) above this height (default %(default)s m)",
+    )
     add_zenoh_args(p, listen=["tcp/127.0.0.1:7447"])
     p.set_defaults(func=cmd_sitl_camera)
 
@@ -614,7 +625,7 @@ def cmd_sitl_camera(a: Any) -> int:
         print(f"DEM for the companion (SITL frame): {dem_path}", flush=True)
         print(f"waiting for ATTITUDE + LOCAL_POSITION_NED on {a.mavlink} ...", flush=True)
         pose = bridge.wait_pose(a.wait_pose)
-        if pose is None:
+        if pose is None and not bridge.stopped:
             print(
                 f"no pose from the SITL after {a.wait_pose:g} s; still waiting (see deploy/SITL.md)",
                 flush=True,
@@ -636,10 +647,10 @@ def cmd_sitl_camera(a: Any) -> int:
         printed = pose is not None
         if printed:
             print(f"following {bridge.autopilot_type}; run the companion with:\n{command(pose)}", flush=True)
-        printed_airborne = False
+        printed_hover = False
 
         def progress(st: dict[str, Any]) -> None:
-            nonlocal printed, printed_airborne
+            nonlocal printed, printed_hover
             agl = st.get("agl_m")
             if not printed and bridge.pose() is not None:
                 printed = True
@@ -650,9 +661,13 @@ def cmd_sitl_camera(a: Any) -> int:
                 f"render {st['render_ms_mean']} ms",
                 flush=True,
             )
-            if not printed_airborne and agl is not None and agl > a.airborne_agl:
-                printed_airborne = True
-                print(f"airborne: a companion started now takes:\n{command(bridge.pose())}", flush=True)
+            hovering = st.get("speed_mps") is not None and st["speed_mps"] < 0.5
+            if not printed_hover and agl is not None and agl > a.hover_agl and hovering:
+                printed_hover = True
+                print(
+                    f"hovering at {agl} m: a companion started now takes:\n{command(bridge.pose())}",
+                    flush=True,
+                )
 
         status = bridge.run(a.duration, progress)
     finally:
