@@ -288,9 +288,15 @@ def europa_heights(
         depth = float(rng.uniform(*opts.crevasse_depth_m))
         pts = _polyline(rng, float(rng.uniform(*opts.crevasse_length_m)), 1.0, 0.05)
         hw = 0.5 * width
-        _add_polyline_feature(
-            small, cell_m, rand_rc(), pts, hw, lambda d, hw=hw, depth=depth: -depth * (1.0 - (d / hw) ** 2)
-        )
+        # U-shaped: flat-ish floor, walls spread over at least 1.5 cells (a one-cell cliff would be drawn as
+        # stairs by the bilinear surface)
+        wall = max(0.4 * hw, 1.5 * cell_m)
+
+        def crevasse(d, hw=hw, depth=depth, wall=wall):
+            t = np.clip((hw - d) / wall, 0.0, 1.0)
+            return -depth * t * t * (3.0 - 2.0 * t)
+
+        _add_polyline_feature(small, cell_m, rand_rc(), pts, hw, crevasse)
     for diam in power_law_sizes(
         rng, _count(rng, opts.block_count, area_scale), *opts.block_diam_m, opts.block_sfd_slope
     ):
@@ -305,7 +311,11 @@ def europa_heights(
         ay = (-np.sin(ang) * x + np.cos(ang) * y) / b
         rn = (np.abs(ax) ** 4 + np.abs(ay) ** 4) ** 0.25  # rounded-box footprint
         hb = diam * float(rng.uniform(0.3, 0.7))
-        small[sl] += hb * np.sqrt(np.clip(1.0 - rn**6, 0.0, 1.0))
+        # steep sides over the outer 15 % of the block (at least 1.5 cells, so a side is never a one-cell
+        # cliff that the bilinear surface would draw as stairs), slightly domed top
+        edge = max(0.15, 1.5 * cell_m / b)
+        t = np.clip((1.0 - rn) / edge, 0.0, 1.0)
+        small[sl] += hb * t * t * (3.0 - 2.0 * t) * (1.0 - 0.1 * rn * rn)
 
     # scale the large-scale part so that the relief equals the target
 
