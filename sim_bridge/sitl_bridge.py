@@ -81,6 +81,12 @@ class SitlCameraOptions:
     """480 px, 36/36 mm: paper 1's 53.13 deg camera (the companion's configs/sim_mars.toml)."""
     noise: bool = True
     """Sensor noise in the rendered frames (sim_bridge.render.SensorNoise defaults)."""
+    rangefinder_hz: float = 20.0
+    """DISTANCE_SENSOR (downward, range to the SCENE along body down) sent to the autopilot; 0 = off. The
+    SITL's own rangefinder sees its flat ground, not the scene: set RNGFND1_TYPE = 10 (MAVLink) so the
+    autopilot uses and relays this one (deploy/SITL.md)."""
+    range_min_m: float = 0.2
+    range_max_m: float = 150.0
     stream_rate_hz: float = 50.0
     """ATTITUDE and LOCAL_POSITION_NED rate asked of the autopilot (0: do not ask; rely on its SRx_ / streams)."""
     request_period_s: float = 5.0
@@ -155,6 +161,7 @@ class BridgeCounters:
     reordered: int = 0
     sitl_restarts: int = 0
     interval_requests: int = 0
+    ranges_sent: int = 0
     render_s_total: float = 0.0
 
     def skip(self, reason: str, n: int = 1) -> None:
@@ -215,6 +222,8 @@ class SitlCameraBridge:
         self._last_boot_ms: int | None = None
         self._next_heartbeat = 0.0
         self._next_request = 0.0
+        self._next_range = 0.0
+        self._t0_mono = time.monotonic()
 
     # --- pose ---------------------------------------------------------------------------------------
     def pose(self) -> VehiclePose | None:
@@ -272,9 +281,57 @@ class SitlCameraBridge:
                 log.exception("sitl bridge: MAVLink loop error")
                 time.sleep(self.options.read_timeout_s)
 
+    def range_to_scene(self, R_world_body: np.ndarray, p_sitl_ned: np.ndarray) -> float | None:
+        """Distance (m) along body down from the vehicle to the scene's true surface; None beyond range_max_m.
+
+        Samples the ray every 0.25 m (one vectorised DEM lookup) and interpolates the crossing linearly.
+        """
+        opts = self.options
+        origin = self.mapping.to_scene(p_sitl_ned)
+        t = np.arange(0.0, opts.range_max_m + 0.25, 0.25)
+        pts = origin[None, :] + t[:, None] * R_world_body[:, 2][None, :]
+        above = -pts[:, 2] - self.scene.dem.height_at(pts[:, 0], pts[:, 1])  # NaN off the scene
+        below = np.flatnonzero(~(above > 0.0))  # first sample at / under the ground (or off the scene)
+        if below.size == 0 or not np.isfinite(above[below[0]]):
+            return None
+        i = int(below[0])
+        if i == 0:
+            return 0.0
+        a0, a1 = float(above[i - 1]), float(above[i])
+        return float(t[i - 1] + (t[i] - t[i - 1]) * a0 / (a0 - a1))
+
+    def _send_range(self) -> None:
+        opts = self.options
+        pose = self.pose()
+        if pose is None:
+            return
+        R, p = pose.at(self.clock_us(), opts.max_extrapolation_s)
+        rng = self.range_to_scene(R, p)
+        min_cm, max_cm = int(opts.range_min_m * 100), int(opts.range_max_m * 100)
+        dist_cm = max_cm + 1 if rng is None else max(0, int(round(rng * 100)))  # > max: out of range
+        self._send(
+            self.codec.mav.distance_sensor_encode(
+                int((time.monotonic() - self._t0_mono) * 1000) % (1 << 32),
+                min_cm,
+                max_cm,
+                min(dist_cm, 65535),
+                mavlink2.MAV_DISTANCE_SENSOR_LASER,
+                0,
+                mavlink2.MAV_SENSOR_ROTATION_PITCH_270,
+                255,
+            )
+        )
+        self.counters.ranges_sent += 1
+
     def _periodic(self) -> None:
         opts, mav = self.options, self.codec.mav
         mono = time.monotonic()
+        if opts.rangefinder_hz > 0 and mono >= self._next_range:
+            period = 1.0 / opts.rangefinder_hz
+            self._next_range = (
+                self._next_range + period if mono - self._next_range < period else mono + period
+            )
+            self._send_range()
         if mono >= self._next_heartbeat:
             self._next_heartbeat = mono + 1.0
             self._send(
@@ -454,6 +511,7 @@ class SitlCameraBridge:
             "received": dict(c.received),
             "reordered": c.reordered,
             "sitl_restarts": c.sitl_restarts,
+            "ranges_sent": c.ranges_sent,
             "render_ms_mean": round(1000 * c.render_s_total / c.frames, 1) if c.frames else None,
             "link": {"connected": self.transport.stats.connected, "bytes_in": self.transport.stats.bytes_in},
         }
@@ -568,6 +626,12 @@ def add_sitl_camera_parser(sub: Any) -> None:
     p.add_argument("--camera-rate", type=float, default=d.camera_rate_hz, help="Hz (default %(default)s)")
     p.add_argument("--camera-key", default=d.camera_key)
     p.add_argument("--stream-rate", type=float, default=d.stream_rate_hz, help="pose rate asked of the SITL")
+    p.add_argument(
+        "--rangefinder-rate",
+        type=float,
+        default=d.rangefinder_hz,
+        help="DISTANCE_SENSOR to the scene sent to the SITL, Hz; 0 = off (default %(default)s)",
+    )
     p.add_argument("--no-noise", action="store_true", help="render without sensor noise")
     p.add_argument("--duration", type=float, default=0.0, help="seconds; 0 = until Ctrl-C (default)")
     p.add_argument("--wait-pose", type=float, default=30.0, help="s to wait for the first pose")
@@ -607,6 +671,7 @@ def cmd_sitl_camera(a: Any) -> int:
         camera_key=a.camera_key,
         noise=not a.no_noise,
         stream_rate_hz=a.stream_rate,
+        rangefinder_hz=a.rangefinder_rate,
     )
     print(f"scene {a.scene}: generating terrain ({a.scene_size:g} m) ...", flush=True)
     session = open_zenoh_from_args(a)

@@ -145,6 +145,7 @@ def test_frames_show_the_reported_pose_at_the_camera_rate(scene, tmp_path) -> No
     assert status["autopilot"] == "ArduPilot"
     assert (1, 100) in autopilot.heartbeats_from
     assert autopilot.received.get("COMMAND_LONG", 0) >= 2  # SET_MESSAGE_INTERVAL x2 (+ REQUEST_MESSAGE)
+    assert autopilot.received.get("DISTANCE_SENSOR", 0) >= 0.7 * 20 * run_s  # the rangefinder, 20 Hz
 
     # about the camera rate: every slot is a frame or a counted skip; frames land on the slot grid
     frames = [f for _, f in arrived]
@@ -168,6 +169,15 @@ def test_frames_show_the_reported_pose_at_the_camera_rate(scene, tmp_path) -> No
         shifted.append(np.abs(img - ref.render(*camera_pose(R, wrong))).mean())
     assert max(diffs) < 1.0, diffs
     assert min(shifted) > 3 * max(diffs) and min(shifted) > 3.0, (diffs, shifted)
+
+    # the rangefinder measures to the scene: the ground point the renderer sees on the optical axis
+    c = (bridge.intrinsics.height // 2, bridge.intrinsics.width // 2)
+    for t_us in (frames[0].stamp_us, frames[-1].stamp_us):
+        R, p = flight.pose(t_us)
+        R_wc, p_c = camera_pose(R, p + offset)
+        hit = ref.ground_points(R_wc, p_c)[c[0] - 1 : c[0] + 1, c[1] - 1 : c[1] + 1].reshape(-1, 3).mean(0)
+        rng = bridge.range_to_scene(R, p)
+        assert rng is not None and rng == pytest.approx(float(np.linalg.norm(hit - p_c)), abs=0.3)
 
     # the DEM for the companion is in the SITL frame: its take-off ground is at height 0
     dem = load_dem(tmp_path / "dem.npz")
