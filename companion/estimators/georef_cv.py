@@ -32,7 +32,8 @@ class GeorefEstimatorOptions:
     initial_sigma_m: float = 5.0  # horizontal uncertainty of the initial position (1 sigma)
     initial_speed_sigma_mps: float = 2.0
     gate_chi2: float = 13.8  # innovation gate (chi-square, 2 dof, p = 0.001)
-    reinit_after_rejections: int = 5  # consecutive gated fixes before re-initialising at the fix
+    reinit_after_rejections: int = 5  # consecutive gated fixes that agree before re-initialising on them
+    reinit_consistency_m: float = 2.0  # gated fixes within this of each other count as agreeing
     max_coast_s: float = 2.0  # without an accepted fix for this long, the estimate is LOST
     altitude_sigma_m: float = 1.0  # vertical 1-sigma of DEM + height above ground
     attitude_sigma_rad: float = float(np.radians(2.0))  # we forward the autopilot's attitude; its 1-sigma
@@ -84,7 +85,7 @@ class GeorefEstimator:
         self._initial_yaw = initial_yaw_rad
         self._t_us: int | None = None
         self._last_fix_us: int | None = None
-        self._rejections = 0
+        self._gated_offsets: deque[np.ndarray] = deque(maxlen=2 * options.reinit_after_rejections)
         self.reset_counter = 0
         self._attitude = _History()
         self._range = _History()
@@ -131,25 +132,34 @@ class GeorefEstimator:
         S = self._P[:2, :2] + fix.cov_ne_m2
         d2 = float(y @ np.linalg.solve(S, y))
         if d2 > self.opt.gate_chi2:
-            self._rejections += 1
             self.counters["gated"] += 1
-            if self._rejections < self.opt.reinit_after_rejections:
+            self._gated_offsets.append(y)
+            if len(self._gated_offsets) < self.opt.reinit_after_rejections:
                 return False
+            # consensus: the largest group of recent rejected fixes that agree with each other
+            offsets = np.array(self._gated_offsets)
+            dist = np.linalg.norm(offsets[:, None, :] - offsets[None, :, :], axis=2)
+            members = dist <= self.opt.reinit_consistency_m
+            best = int(np.argmax(members.sum(axis=1)))
+            group = offsets[members[best]]
+            if len(group) < self.opt.reinit_after_rejections:
+                return False
+            centre = np.median(group, axis=0)
+            spread = float(np.max(np.linalg.norm(group - centre, axis=1)))
             # the fixes agree with each other and not with us: we are the ones who are wrong
-            self._x[:2] = fix.p_world[:2]
-            self._x[2:] = 0.0
-            self._P = np.diag(
-                [fix.cov_ne_m2[0, 0], fix.cov_ne_m2[1, 1]] + [self.opt.initial_speed_sigma_mps**2] * 2
-            )
+            self._x[:2] = self._x[:2] + centre
+            self._P[:2, :] = 0.0
+            self._P[:, :2] = 0.0
+            self._P[:2, :2] = fix.cov_ne_m2 + np.eye(2) * (spread / 2.0) ** 2
             self.reset_counter += 1
             self.counters["reinit"] += 1
-            self._rejections = 0
+            self._gated_offsets.clear()
             return True
         K = self._P @ H.T @ np.linalg.inv(S)
         self._x = self._x + K @ y
         self._P = (np.eye(4) - K @ H) @ self._P
         self._P = 0.5 * (self._P + self._P.T)
-        self._rejections = 0
+        self._gated_offsets.clear()
         return True
 
     def on_frames(self, frames: dict[str, Frame]) -> PoseEstimate | None:
