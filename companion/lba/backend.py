@@ -1,0 +1,308 @@
+"""The key-frame back-end of terrain-aided SLAM (paper 1 sections 4.3): geo-reference each new key frame
+against the DEM, gate the fix, align the VO frame to the world (eq. 21) once enough fixes agree, and run
+the local bundle adjustment with the geo-referencing term (eqs. 22-24).
+
+It is fed ``BackendJob``s (one per key frame, built by the front-end from its map) and returns
+``BackendResult``s the front-end writes back. It keeps the few things that outlive a window: the accepted
+fixes, the marginal covariance of each key frame (the prior of a key frame once it becomes an anchor),
+the alignment state and the counters. The geo-referencer is passed in (``Locator``), so the back-end is
+pure math and runs the same inline, in a thread or in a worker process.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from companion.lba.align import align_yaw_translation
+from companion.lba.window import LbaOptions, WindowProblem, solve_window
+from companion.vo.odometry import WindowSnapshot
+
+Locator = Callable[[np.ndarray, np.ndarray, np.ndarray, float | None], Any]
+"""``locate(image, R_world_body, p_pred_world, alt_agl_m) -> GeoFix`` (companion.georef.georef)."""
+
+
+@dataclass(frozen=True)
+class BackendOptions:
+    lba: LbaOptions = field(default_factory=LbaOptions)
+    geo_sigma_m: float = 1.0  # sigma0 of a geo-fix, north and east (m), before the w_G weighting:
+    # the geo term's sigma is sigma0 / sqrt(w_G) (eq. 23 with unit pixel weights, as in the paper)
+    geo_sigma_z_m: float = 1.5  # sigma0 of the fix's down component (DEM + altimeter, eq. 18; a 1 % altimeter
+    # alone is 1 m at 100 m)
+    geo_min_quality: float = 0.0  # extra gate on the phase-correlation peak, on top of the matcher's own
+    geo_gate_chi2: float = 16.27  # Mahalanobis gate of a fix against the prediction (3 dof, p = 0.001)
+    align_min_fixes: int = 4  # eq. 21 alignment once this many key frames have fixes
+    align_huber_m: float = 1.0  # robust threshold of the alignment
+    align_max_rms_m: float = 2.0  # an alignment worse than this is not trusted (wait for more fixes)
+    align_min_spread_m: float = 25.0  # the yaw is aligned only when the fixes spread this far (RMS about
+    # their centre): with fixes good to ~0.5 m, a shorter base turns the yaw by more than the compass is off
+    realign_after_rejections: int = 6  # this many gated fixes in a row that agree with each other:
+    # the VO frame is off, not the fixes -> eq. 21 again on them
+    drift_sigma_per_m: float = (
+        0.02  # VO position uncertainty growth per metre since the last adjusted key frame
+    )
+    min_anchors: int = 2  # with fewer anchors (start-up), the oldest window key frames are held: two
+    # pinned poses fix the gauge including the monocular scale set by the altimeter
+    initial_sigma_m: float = 1.0  # once geo-referenced, a start-up key frame (pinned so far) is held by this
+    initial_sigma_rad: float = 0.02  # prior instead, so that the fixes can move it
+
+
+@dataclass(frozen=True)
+class BackendJob:
+    """One key frame's work.
+
+    snapshot: the window (front-end map, VO frame). newest_kf: the key frame just made. image: its frame
+    (None: no geo-referencing). R_world_body, p_body_in_world: its VO pose (world NED). alt_agl_m: vertical
+    height above ground from the altimeter (None: unknown). dist_since_prev_kf_m: path length since the
+    previous key frame. p_body_in_cam: (3,) lever arm. epoch: map epoch (bumped at each re-initialisation).
+    """
+
+    snapshot: WindowSnapshot
+    newest_kf: int
+    image: np.ndarray | None
+    R_world_body: np.ndarray
+    p_body_in_world: np.ndarray
+    alt_agl_m: float | None
+    dist_since_prev_kf_m: float
+    p_body_in_cam: np.ndarray
+    K: np.ndarray
+    epoch: int = 0
+
+
+@dataclass(frozen=True)
+class BackendResult:
+    """What the front-end writes back (see ``VisualOdometry.apply_correction``).
+
+    T_align: (4, 4) eq. 21 transform applied to the map before the adjustment (identity when none).
+    kf_ids / T_world_cam: solved key frames; lm_ids / p_world: solved points; outlier_kf / outlier_lm:
+    observations to drop. cov_newest: (6, 6) Pose3-tangent marginal of the newest key frame (NaN if none).
+    geo: dict with the fix outcome ("none", "failed:<reason>", "pending", "accepted", "rejected",
+    "aligned", "realigned"), its quality and residual. counters: running totals. ms_*: compute times.
+    """
+
+    newest_kf: int
+    epoch: int
+    T_align: np.ndarray
+    kf_ids: np.ndarray
+    T_world_cam: np.ndarray
+    lm_ids: np.ndarray
+    p_world: np.ndarray
+    outlier_kf: np.ndarray
+    outlier_lm: np.ndarray
+    cov_newest: np.ndarray
+    geo: dict
+    counters: dict
+    lba_ok: bool
+    lba_iterations: int
+    ms_geo: float
+    ms_lba: float
+
+
+def _transform_snapshot(s: WindowSnapshot, T: np.ndarray) -> WindowSnapshot:
+    return replace(
+        s,
+        T_world_cam=np.einsum("ij,njk->nik", T, s.T_world_cam),
+        p_world=s.p_world @ T[:3, :3].T + T[:3, 3],
+    )
+
+
+class Backend:
+    """Stateful back-end; one per flight. ``locate`` may be None (VO only: no geo-referencing)."""
+
+    def __init__(self, options: BackendOptions, locate: Locator | None) -> None:
+        self.opt = options
+        self.locate = locate if options.lba.w_geo > 0 else None
+        self.counters = {
+            "keyframes": 0,
+            "fix_attempts": 0,
+            "fix_failed": 0,
+            "fix_accepted": 0,
+            "fix_rejected": 0,
+            "alignments": 0,
+            "realignments": 0,
+            "lba_failed": 0,
+        }
+        self.fail_reasons: dict[str, int] = {}
+        self._reset_state()
+
+    def _reset_state(self) -> None:
+        self.epoch = -1
+        self.fixes: dict[int, np.ndarray] = {}  # accepted fixes (world, aligned frame), by key frame
+        self.pending: dict[int, np.ndarray] = {}  # fixes waiting for the first alignment
+        self.rejected: dict[int, np.ndarray] = {}  # consecutive gated fixes
+        self.cov: dict[int, np.ndarray] = {}  # last marginal covariance per key frame
+        self.aligned = False
+        self.cov_pos_newest: np.ndarray | None = None  # world position covariance of the last newest kf
+
+    def _fix_cov(self) -> np.ndarray:
+        return np.diag([self.opt.geo_sigma_m**2, self.opt.geo_sigma_m**2, self.opt.geo_sigma_z_m**2])
+
+    def _positions(self, s: WindowSnapshot, kf_ids: list[int], lever: np.ndarray) -> np.ndarray:
+        idx = {int(k): i for i, k in enumerate(s.kf_ids)}
+        return np.stack(
+            [s.T_world_cam[idx[k], :3, :3] @ lever + s.T_world_cam[idx[k], :3, 3] for k in kf_ids]
+        )
+
+    def _try_align(
+        self, s: WindowSnapshot, fixes: dict[int, np.ndarray], lever: np.ndarray
+    ) -> tuple[np.ndarray, list[int]] | None:
+        """Eq. 21 from the fixes of key frames in the snapshot; (T_world_vo, inlier kf ids) or None."""
+        in_snap = set(int(k) for k in s.kf_ids)
+        ks = [k for k in sorted(fixes) if k in in_snap]
+        if len(ks) < self.opt.align_min_fixes:
+            return None
+        p_vo = self._positions(s, ks, lever)
+        p_geo = np.stack([fixes[k] for k in ks])
+        a = align_yaw_translation(
+            p_vo, p_geo, huber_m=self.opt.align_huber_m, min_spread_m=self.opt.align_min_spread_m
+        )
+        if a.rms_m > self.opt.align_max_rms_m or a.inliers.sum() < self.opt.align_min_fixes:
+            return None
+        return a.T_world_vo, [k for k, ok in zip(ks, a.inliers) if ok]
+
+    def _geo(self, job: BackendJob) -> tuple[dict, np.ndarray]:
+        """Geo-reference the newest key frame; returns (outcome, T_align)."""
+        T_align = np.eye(4)
+        if self.locate is None or job.image is None:
+            return {"status": "none"}, T_align
+        self.counters["fix_attempts"] += 1
+        fix = self.locate(job.image, job.R_world_body, job.p_body_in_world, job.alt_agl_m)
+        if not fix.ok or fix.quality < self.opt.geo_min_quality:
+            reason = fix.reason or "low_quality"
+            self.fail_reasons[reason] = self.fail_reasons.get(reason, 0) + 1
+            self.counters["fix_failed"] += 1
+            return {"status": f"failed:{reason}", "quality": float(fix.quality)}, T_align
+        k = job.newest_kf
+        p_fix = np.asarray(fix.p_world, float)
+        out = {"kf": k, "quality": float(fix.quality), "residual_m": (p_fix - job.p_body_in_world).tolist()}
+        lever = job.p_body_in_cam
+        if not self.aligned:
+            self.pending[k] = p_fix
+            res = self._try_align(job.snapshot, self.pending, lever)
+            if res is None:
+                # keep the most recent ones only: the window moves on
+                for old in sorted(self.pending)[: max(len(self.pending) - 2 * self.opt.align_min_fixes, 0)]:
+                    del self.pending[old]
+                out["status"] = "pending"
+                return out, T_align
+            T_align, inliers = res
+            self.fixes.update({kk: self.pending[kk] for kk in inliers})
+            self.counters["fix_accepted"] += len(inliers)
+            self.pending.clear()
+            self.aligned = True
+            init_cov = np.diag([self.opt.initial_sigma_rad**2] * 3 + [self.opt.initial_sigma_m**2] * 3)
+            for kk in job.snapshot.kf_ids:
+                self.cov.setdefault(int(kk), init_cov)
+            self.counters["alignments"] += 1
+            out["status"] = "aligned"
+            return out, T_align
+        # gate against the prediction: the last adjusted key frame's covariance grown by the distance since
+        P_pred = np.eye(3) * 1e-2 if self.cov_pos_newest is None else self.cov_pos_newest
+        P_pred = P_pred + np.eye(3) * (self.opt.drift_sigma_per_m * job.dist_since_prev_kf_m) ** 2
+        e = p_fix - job.p_body_in_world
+        d2 = float(e @ np.linalg.solve(P_pred + self._fix_cov(), e))
+        out["mahalanobis2"] = d2
+        if d2 <= self.opt.geo_gate_chi2:
+            self.fixes[k] = p_fix
+            self.rejected.clear()
+            self.counters["fix_accepted"] += 1
+            out["status"] = "accepted"
+            return out, T_align
+        self.counters["fix_rejected"] += 1
+        self.rejected[k] = p_fix
+        out["status"] = "rejected"
+        if len(self.rejected) >= self.opt.realign_after_rejections:
+            res = self._try_align(job.snapshot, self.rejected, lever)
+            if res is not None:
+                T_align, inliers = res
+                # the old fixes were taken in the old alignment: they are superseded
+                self.fixes = {kk: self.rejected[kk] for kk in inliers}
+                self.counters["fix_accepted"] += len(inliers)
+                self.counters["realignments"] += 1
+                out["status"] = "realigned"
+            self.rejected.clear()
+        return out, T_align
+
+    def process(self, job: BackendJob) -> BackendResult:
+        if job.epoch != self.epoch:
+            self._reset_state()
+            self.epoch = job.epoch
+        self.counters["keyframes"] += 1
+        t0 = time.perf_counter()
+        geo, T_align = self._geo(job)
+        t1 = time.perf_counter()
+        s = job.snapshot if np.allclose(T_align, np.eye(4)) else _transform_snapshot(job.snapshot, T_align)
+        M = len(s.kf_ids)
+        anchor = s.anchor.copy()
+        if anchor.sum() < self.opt.min_anchors:
+            for i in range(M):
+                if anchor.sum() >= self.opt.min_anchors or i == M - 1:
+                    break
+                anchor[i] = True
+        anchor_cov = np.full((M, 6, 6), np.nan)
+        geo_p = np.full((M, 3), np.nan)
+        for i, k in enumerate(s.kf_ids):
+            k = int(k)
+            if anchor[i] and k in self.cov:
+                anchor_cov[i] = self.cov[k]
+            if k in self.fixes:
+                geo_p[i] = self.fixes[k]
+        problem = WindowProblem(
+            T_world_cam=s.T_world_cam,
+            anchor=anchor,
+            anchor_cov=anchor_cov,
+            p_world=s.p_world,
+            obs_kf=s.obs_kf,
+            obs_lm=s.obs_lm,
+            obs_px=s.obs_px,
+            K=job.K,
+            p_body_in_cam=job.p_body_in_cam,
+            geo_p_world=geo_p,
+            geo_cov=np.tile(self._fix_cov(), (M, 1, 1)),
+            down_cam=s.down_cam,
+        )
+        sol = solve_window(problem, self.opt.lba)
+        t2 = time.perf_counter()
+        if not sol.ok:
+            self.counters["lba_failed"] += 1
+        for i, k in enumerate(s.kf_ids):
+            if not anchor[i] and np.all(np.isfinite(sol.cov[i])):
+                self.cov[int(k)] = sol.cov[i]
+        # forget key frames that left the front-end's map
+        oldest = int(s.kf_ids.min()) if M else 0
+        for d in (self.cov, self.fixes):
+            for k in [k for k in d if k < oldest - 200]:
+                del d[k]
+        cov_newest = sol.cov[-1] if M else np.full((6, 6), np.nan)
+        if np.all(np.isfinite(cov_newest)):
+            R = sol.T_world_cam[-1, :3, :3]
+            self.cov_pos_newest = R @ cov_newest[3:, 3:] @ R.T
+        out_kf = s.kf_ids[s.obs_kf[~sol.obs_inlier]]
+        out_lm = s.lm_ids[s.obs_lm[~sol.obs_inlier]]
+        if "residual_m" in geo and int(s.kf_ids[-1]) == job.newest_kf:
+            lever = job.p_body_in_cam
+            p_new = sol.T_world_cam[-1, :3, :3] @ lever + sol.T_world_cam[-1, :3, 3]
+            if job.newest_kf in self.fixes:
+                geo["post_residual_m"] = (self.fixes[job.newest_kf] - p_new).tolist()
+        return BackendResult(
+            newest_kf=job.newest_kf,
+            epoch=job.epoch,
+            T_align=T_align,
+            kf_ids=s.kf_ids,
+            T_world_cam=sol.T_world_cam,
+            lm_ids=s.lm_ids,
+            p_world=sol.p_world,
+            outlier_kf=out_kf,
+            outlier_lm=out_lm,
+            cov_newest=cov_newest,
+            geo=geo,
+            counters=dict(self.counters),
+            lba_ok=sol.ok,
+            lba_iterations=sol.iterations,
+            ms_geo=(t1 - t0) * 1e3,
+            ms_lba=(t2 - t1) * 1e3,
+        )

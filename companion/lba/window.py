@@ -1,0 +1,251 @@
+"""Sliding-window local bundle adjustment with the geo-referencing term (paper 1 section 4.3, eqs. 22-24),
+in GTSAM, solved by Levenberg-Marquardt, with the marginal covariances of the key-frame poses.
+
+Cost (eq. 23), written as GTSAM factors:
+- reprojection (eq. 22): ``GenericProjectionFactorCal3_S2`` per observation, isotropic pixel sigma
+  (eq. 22's weight w_i = 1 / sigma_px^2) behind a robust kernel (Huber or Cauchy);
+- geo-referencing (eqs. 23-24): ``GPSFactorArm`` per geo-referenced key frame: the body position implied
+  by the camera pose (camera pose composed with the camera-to-body lever arm) minus the geo-fix, in
+  x, y and z, weighted by the confidence w_G: covariance = the fix's own covariance / w_G (w_G = 0 drops
+  the term), behind a robust kernel;
+- gravity: ``AttitudeFactorPose3`` per key frame: the down direction measured by the autopilot's
+  attitude (roll and pitch; yaw is left free, a compass bias must not enter);
+- key frames outside the window that see the window's points ("anchors", as ORB-SLAM's fixed key
+  frames) are held by a pose prior with their last marginal covariance (or pinned when none is known).
+
+Poses are ``T_world_cam`` (4, 4); GTSAM's Pose3 tangent is (rotation, translation) in the camera frame.
+Pure math: numpy + gtsam.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+from scipy.spatial.transform import Rotation
+
+_DOWN_WORLD = np.array([0.0, 0.0, 1.0])  # NED: gravity points along +z
+
+
+@dataclass(frozen=True)
+class LbaOptions:
+    pixel_sigma_px: float = 1.0  # reprojection noise, 1 sigma (eq. 22: w_i = 1 / sigma^2)
+    reprojection_kernel: str = "huber"  # robust loss on reprojection: "huber", "cauchy" or "none"
+    reprojection_kernel_k: float = 1.345  # kernel width, in sigmas
+    w_geo: float = 10.0  # eq. 23 confidence w_G of the geo-referencing term; 0 = terrain-free (pure VO)
+    geo_kernel: str = "huber"  # robust loss on the geo term
+    geo_kernel_k: float = 1.345  # in sigmas of the weighted geo covariance
+    gravity_sigma_rad: float = 0.005  # roll/pitch prior from the autopilot (1 sigma); 0 = none
+    anchor_cov_inflation: float = 2.0  # anchors' marginal covariance x this (their information was
+    # partly built from factors still in the window: counting it twice would be over-confident)
+    pinned_sigma: float = 1e-4  # sigma (rad, m) of a pinned anchor whose covariance is unknown
+    max_iterations: int = 15  # Levenberg-Marquardt iterations
+    relative_error_tol: float = 1e-5
+    outlier_chi2: float = 9.21  # after the solve, observations with whitened squared error above this
+    # (2 dof, p = 0.01) are reported as outliers for the front-end to cull
+    marginals: bool = True  # compute the key-frame marginal covariances
+
+
+@dataclass(frozen=True)
+class WindowProblem:
+    """One local bundle adjustment.
+
+    T_world_cam: (M, 4, 4) initial key-frame camera poses. anchor: (M,) bool, True for key frames held
+        by a prior (outside the window). anchor_cov: (M, 6, 6) Pose3-tangent covariance of each anchor's
+        prior, NaN where unknown (then pinned).
+    p_world: (L, 3) initial landmark positions.
+    obs_kf, obs_lm: (O,) indices into the poses and landmarks; obs_px: (O, 2) measured pixels.
+    K: (3, 3) camera matrix. p_body_in_cam: (3,) lever arm (body origin in the camera frame).
+    geo_p_world: (M, 3) geo-referenced body position per key frame, NaN rows where none.
+    geo_cov: (M, 3, 3) its covariance (m^2) before the w_G weighting.
+    down_cam: (M, 3) gravity direction in the camera frame from the autopilot's attitude, NaN where none.
+    """
+
+    T_world_cam: np.ndarray
+    anchor: np.ndarray
+    anchor_cov: np.ndarray
+    p_world: np.ndarray
+    obs_kf: np.ndarray
+    obs_lm: np.ndarray
+    obs_px: np.ndarray
+    K: np.ndarray
+    p_body_in_cam: np.ndarray
+    geo_p_world: np.ndarray
+    geo_cov: np.ndarray
+    down_cam: np.ndarray
+
+
+@dataclass(frozen=True)
+class WindowSolution:
+    """T_world_cam: (M, 4, 4); p_world: (L, 3); cov: (M, 6, 6) marginal Pose3-tangent covariances (NaN when
+    not computed); obs_inlier: (O,) bool; geo_whitened: (M,) whitened geo residual norm at the solution
+    (NaN without a fix); error_initial / error_final: graph cost; iterations; ok."""
+
+    T_world_cam: np.ndarray
+    p_world: np.ndarray
+    cov: np.ndarray
+    obs_inlier: np.ndarray
+    geo_whitened: np.ndarray
+    error_initial: float
+    error_final: float
+    iterations: int
+    ok: bool
+
+
+def robust(base: gtsam.noiseModel.Base, kernel: str, k: float) -> gtsam.noiseModel.Base:
+    """``base`` behind an M-estimator: "huber", "cauchy" or "none"."""
+    if kernel == "none":
+        return base
+    if kernel == "huber":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
+    if kernel == "cauchy":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(k), base)
+    raise ValueError(f"unknown robust kernel {kernel!r}, expected 'huber', 'cauchy' or 'none'")
+
+
+def geo_factor(
+    key: int, geo_p_world: np.ndarray, p_body_in_cam: np.ndarray, noise: gtsam.noiseModel.Base
+) -> gtsam.NonlinearFactor:
+    """Eq. 24 as a GTSAM factor on the camera pose: error = T_world_cam * p_body_in_cam - geo_p_world."""
+    return gtsam.GPSFactorArm(key, np.asarray(geo_p_world, float), np.asarray(p_body_in_cam, float), noise)
+
+
+def geo_noise(cov: np.ndarray, w_geo: float, options: LbaOptions) -> gtsam.noiseModel.Base:
+    """Noise model of eq. 23's geo term: Gaussian with covariance cov / w_G behind the geo kernel."""
+    base = gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float) / w_geo)
+    return robust(base, options.geo_kernel, options.geo_kernel_k)
+
+
+def build_graph(
+    problem: WindowProblem, options: LbaOptions
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[int]]:
+    """The factor graph, initial values and the graph index of each geo factor (-1 where none)."""
+    K = problem.K
+    cal = gtsam.Cal3_S2(K[0, 0], K[1, 1], 0.0, K[0, 2], K[1, 2])
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    M = len(problem.T_world_cam)
+    for i in range(M):
+        values.insert(X(i), gtsam.Pose3(problem.T_world_cam[i]))
+    for j, p in enumerate(problem.p_world):
+        values.insert(L(j), np.asarray(p, float))
+    pix = robust(
+        gtsam.noiseModel.Isotropic.Sigma(2, options.pixel_sigma_px),
+        options.reprojection_kernel,
+        options.reprojection_kernel_k,
+    )
+    for i, j, uv in zip(problem.obs_kf, problem.obs_lm, problem.obs_px):
+        graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(uv, float), pix, X(int(i)), L(int(j)), cal))
+    pinned = gtsam.noiseModel.Isotropic.Sigma(6, options.pinned_sigma)
+    for i in np.flatnonzero(problem.anchor):
+        cov = problem.anchor_cov[i]
+        if np.all(np.isfinite(cov)):
+            noise = gtsam.noiseModel.Gaussian.Covariance(cov * options.anchor_cov_inflation)
+        else:
+            noise = pinned
+        graph.add(gtsam.PriorFactorPose3(X(int(i)), gtsam.Pose3(problem.T_world_cam[i]), noise))
+    if options.gravity_sigma_rad > 0:
+        grav = gtsam.noiseModel.Isotropic.Sigma(2, options.gravity_sigma_rad)
+        n_ref = gtsam.Unit3(_DOWN_WORLD)
+        for i in range(M):
+            d = problem.down_cam[i]
+            if problem.anchor[i] or not np.all(np.isfinite(d)):
+                continue
+            graph.add(gtsam.AttitudeFactorPose3(X(i), n_ref, grav, gtsam.Unit3(d)))
+    geo_index = [-1] * M
+    if options.w_geo > 0:
+        for i in range(M):
+            g = problem.geo_p_world[i]
+            if problem.anchor[i] or not np.all(np.isfinite(g)):
+                continue
+            geo_index[i] = graph.size()
+            noise = geo_noise(problem.geo_cov[i], options.w_geo, options)
+            graph.add(geo_factor(X(i), g, problem.p_body_in_cam, noise))
+    return graph, values, geo_index
+
+
+def solve_window(problem: WindowProblem, options: LbaOptions = LbaOptions()) -> WindowSolution:
+    """Levenberg-Marquardt over the window; marginals of every key-frame pose."""
+    M = len(problem.T_world_cam)
+    Lm = len(problem.p_world)
+    O = len(problem.obs_kf)
+    graph, values, geo_index = build_graph(problem, options)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(options.max_iterations)
+    params.setRelativeErrorTol(options.relative_error_tol)
+    err0 = graph.error(values)
+    try:
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        result = opt.optimize()
+        iters = opt.iterations()
+    except RuntimeError:
+        # indeterminate system (a degenerate window): keep the input, say so
+        return WindowSolution(
+            problem.T_world_cam.copy(),
+            problem.p_world.copy(),
+            np.full((M, 6, 6), np.nan),
+            np.ones(O, bool),
+            np.full(M, np.nan),
+            float(err0),
+            float(err0),
+            0,
+            False,
+        )
+    T = np.stack([result.atPose3(X(i)).matrix() for i in range(M)])
+    P = np.stack([result.atPoint3(L(j)) for j in range(Lm)]) if Lm else np.zeros((0, 3))
+    # observation inliers from the plain (non-robust) whitened reprojection error
+    inl = np.ones(O, bool)
+    if O:
+        R = T[problem.obs_kf, :3, :3]
+        p_cam = np.einsum("nji,nj->ni", R, P[problem.obs_lm] - T[problem.obs_kf, :3, 3])
+        z = p_cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv_hat = (
+                p_cam[:, :2] / z[:, None] * np.array([problem.K[0, 0], problem.K[1, 1]]) + problem.K[:2, 2]
+            )
+            e2 = np.sum((uv_hat - problem.obs_px) ** 2, axis=1) / options.pixel_sigma_px**2
+            inl = (z > 0) & (e2 < options.outlier_chi2)
+    geo_w = np.full(M, np.nan)
+    for i, gi in enumerate(geo_index):
+        if gi >= 0:
+            r = T[i, :3, :3] @ problem.p_body_in_cam + T[i, :3, 3] - problem.geo_p_world[i]
+            geo_w[i] = float(np.sqrt(r @ np.linalg.solve(problem.geo_cov[i] / options.w_geo, r)))
+    cov = np.full((M, 6, 6), np.nan)
+    if options.marginals:
+        try:
+            marg = gtsam.Marginals(graph, result)
+            for i in range(M):
+                cov[i] = marg.marginalCovariance(X(i))
+        except RuntimeError:
+            pass  # left NaN: the caller keeps its previous covariance and says so
+    return WindowSolution(T, P, cov, inl, geo_w, float(err0), float(graph.error(result)), int(iters), True)
+
+
+def body_covariance(
+    T_world_cam: np.ndarray, cov_tangent: np.ndarray, R_body_cam: np.ndarray, p_body_in_cam: np.ndarray
+) -> np.ndarray:
+    """(6, 6) covariance over the body's (x, y, z, roll, pitch, yaw) (NED m, rad) from a camera pose's
+    (6, 6) Pose3-tangent covariance (rotation, translation in the camera frame), by a numerical Jacobian
+    of body position and Euler angles with respect to the tangent (exact enough, and no sign to get wrong)."""
+
+    def body(T: np.ndarray) -> np.ndarray:
+        R_wb = T[:3, :3] @ R_body_cam.T
+        p = T[:3, :3] @ p_body_in_cam + T[:3, 3]
+        yaw, pitch, roll = Rotation.from_matrix(R_wb).as_euler("ZYX")
+        return np.array([p[0], p[1], p[2], roll, pitch, yaw])
+
+    pose = gtsam.Pose3(T_world_cam)
+    J = np.zeros((6, 6))
+    h = 1e-6
+    for k in range(6):
+        xi = np.zeros(6)
+        xi[k] = h
+        fp = body(pose.retract(xi).matrix())
+        fm = body(pose.retract(-xi).matrix())
+        d = fp - fm
+        d[3:] = (d[3:] + np.pi) % (2 * np.pi) - np.pi
+        J[:, k] = d / (2 * h)
+    C = J @ cov_tangent @ J.T
+    return 0.5 * (C + C.T)
