@@ -1,0 +1,384 @@
+"""Paper 1 Tables 4, 5 and 7 analogues: VO only (w_G = 0) vs terrain-aided LBA (``terrain_lba``).
+
+Frames are rendered over the simulated scenes (``sim_bridge.terrain`` / ``sim_bridge.render``, sensor noise
+on) at 15 Hz from about 100 m above the mean ground at 4 m/s; the estimator gets the degraded DEM
+(``degrade_dem``: 4x coarser, noise, holes), the autopilot's attitude with the simulated autopilot's noise
+and compass bias, and the altimeter range with its noise. Every method sees the very same frames (they run
+in lock-step on each rendered frame). The back-end runs in its worker process with its result applied a
+fixed number of frames after its key frame (deterministic), so the per-frame figures include the
+contention of a real back-end.
+
+Accuracy: APE of the body position (evo, ``PoseRelation.translation_part``) against the truth at each
+frame's capture time, WITHOUT any alignment: both methods start at the known initial position and report
+in the world frame, as a navigation system must. (evo's SE(3) Umeyama-aligned APE, what trajectory papers
+often quote for VO/SLAM, is reported beside it as ``aligned``.) Frames before the VO is initialised have no
+estimate; ``coverage`` says how many frames had one.
+
+Speed: ``fps`` = frames / total time inside ``on_frames`` (the per-frame path: tracking, PnP, key-frame
+decisions, applying adjustments); ``p99_ms`` its 99th percentile latency. Rendering is not timed.
+
+    python -m bench terrain_slam [--quick] [--json bench/results/terrain_slam.json]
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from evo.core import metrics, sync
+from evo.core.trajectory import PoseTrajectory3D
+
+from bench.common import parser, table, write_json
+from companion.constants import GRAVITY_MPS2, R_BODY_CAM_NADIR
+from companion.estimators.terrain_lba import TerrainLbaEstimator, TerrainLbaOptions
+from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
+from companion.georef.dem import Dem
+from companion.types import AltimeterSample, AttitudeSample, Frame
+from sim_bridge.autopilot_link import SimNoise
+from sim_bridge.render import VisibleRenderer
+from sim_bridge.terrain import SCENE_IDS, degrade_dem, make_scene
+from sim_bridge.trajectory import Trajectory, circular, forward, scanning
+
+CAMERA_HZ = 15.0
+SPEED_MPS = 4.0
+HEIGHT_M = 100.0
+RADIUS_M = 120.0
+CONFIDENCES = (0.0, 1.0, 10.0, 100.0, 1000.0)
+STAT_KEYS = ("max", "median", "min", "mean", "rmse", "std")
+
+
+@dataclass(frozen=True)
+class FlightSpec:
+    scene_id: str
+    trajectory: str  # circular | forward | scanning
+    duration_s: float
+    seed: int = 0
+
+
+def make_trajectory(kind: str, duration_s: float, ground_m: float) -> Trajectory:
+    """Paper 1's three flights, centred on the 600 m scene, ~100 m above the mean ground, 4 m/s."""
+    alt = ground_m + HEIGHT_M
+    g = GRAVITY_MPS2["mars"]
+    if kind == "circular":
+        return circular((0.0, 0.0), RADIUS_M, alt, SPEED_MPS, duration_s, gravity_mps2=g)
+    if kind == "forward":
+        # diagonal across the scene, starting 170 m south-west of the centre
+        h = np.radians(30.0)
+        return forward(
+            (-170.0 * np.cos(h), -170.0 * np.sin(h)), h, alt, SPEED_MPS, duration_s, gravity_mps2=g
+        )
+    if kind == "scanning":
+        return scanning((-120.0, -150.0), 240.0, 60.0, alt, SPEED_MPS, duration_s, gravity_mps2=g)
+    raise ValueError(f"unknown trajectory {kind!r}")
+
+
+def range_to_ground(dem: Dem, p: np.ndarray, d: np.ndarray, t_max: float = 1000.0) -> float:
+    """Distance along the unit ray p + t d to the first terrain hit (marching, then bisection)."""
+    ts = np.linspace(0.0, t_max, 2001)
+    pts = p[None, :] + ts[:, None] * d[None, :]
+    h = dem.height_at(pts[:, 0], pts[:, 1])
+    below = pts[:, 2] > -h  # NED: below the ground when z > -height
+    i = int(np.argmax(below))
+    if not below[i]:
+        return float("nan")
+    a, b = ts[max(i - 1, 0)], ts[i]
+    for _ in range(30):
+        m = 0.5 * (a + b)
+        q = p + m * d
+        if q[2] > -float(dem.height_at(q[0], q[1])[0]):
+            b = m
+        else:
+            a = m
+    return 0.5 * (a + b)
+
+
+def ape_stats(t_ref: np.ndarray, p_ref: np.ndarray, t_est: np.ndarray, p_est: np.ndarray) -> dict[str, Any]:
+    """evo APE (translation part) stats in metres, unaligned and SE(3)-aligned."""
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (len(t_ref), 1))
+    ref = PoseTrajectory3D(positions_xyz=p_ref, orientations_quat_wxyz=q, timestamps=t_ref)
+    est = PoseTrajectory3D(
+        positions_xyz=p_est,
+        orientations_quat_wxyz=np.tile([1.0, 0.0, 0.0, 0.0], (len(t_est), 1)),
+        timestamps=t_est,
+    )
+    ref, est = sync.associate_trajectories(ref, est, max_diff=1e-3)
+    out: dict[str, Any] = {}
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    s = ape.get_all_statistics()
+    out.update({k: float(s[k]) for k in STAT_KEYS})
+    est_al = copy.deepcopy(est)
+    est_al.align(ref, correct_scale=False)
+    ape_al = metrics.APE(metrics.PoseRelation.translation_part)
+    ape_al.process_data((ref, est_al))
+    sa = ape_al.get_all_statistics()
+    out["aligned"] = {k: float(sa[k]) for k in STAT_KEYS}
+    out["errors_m"] = np.asarray(ape.error)
+    return out
+
+
+def run_flight(spec: FlightSpec, methods: dict[str, TerrainLbaOptions], log: bool = True) -> dict[str, Any]:
+    """Render one flight and run every method on it in lock-step; returns per-method results."""
+    t0 = time.perf_counter()
+    scene = make_scene(spec.scene_id, spec.seed)
+    dem_est, deg = degrade_dem(scene.dem, factor=4, seed=spec.seed + 1)
+    ground = float(np.nanmean(scene.dem.height_m))
+    traj = make_trajectory(spec.trajectory, spec.duration_s, ground)
+    intr = CameraIntrinsics.from_focal_sensor(480, 480, 36, 36)
+    renderer = VisibleRenderer(scene.dem, scene.albedo, scene.sun, intr)
+    noise = SimNoise()
+    rng = np.random.default_rng([spec.seed, 7, int(spec.scene_id)])
+    yaw_bias = float(rng.normal(0.0, noise.yaw_bias_rad))
+    times = np.arange(0.0, traj.duration_s, 1.0 / CAMERA_HZ)
+    states = traj.states(times)
+    s0 = states[0]
+    yaw0 = float(rpy_from_rot(s0.R_world_body)[2]) + yaw_bias
+    est = {
+        name: TerrainLbaEstimator(
+            opt,
+            intr,
+            R_BODY_CAM_NADIR,
+            dem_est,
+            scene.sun,
+            s0.p_world.copy(),
+            yaw0,
+            synchronous_backend=False,
+        )
+        for name, opt in methods.items()
+    }
+    setup_s = time.perf_counter() - t0
+    lat = {n: [] for n in methods}
+    got: dict[str, list[tuple[float, np.ndarray]]] = {n: [] for n in methods}
+    render_s = 0.0
+    p_true = np.stack([s.p_world for s in states])
+    for k, (t, s) in enumerate(zip(times, states)):
+        stamp = int(round(t * 1e6))
+        R_wc, p_c = camera_pose(s.R_world_body, s.p_world)
+        tr = time.perf_counter()
+        img = renderer.render(R_wc, p_c, seed=k)
+        render_s += time.perf_counter() - tr
+        rpy = rpy_from_rot(s.R_world_body) + rng.normal(
+            0.0, [noise.roll_pitch_rad, noise.roll_pitch_rad, noise.yaw_rad]
+        )
+        att = AttitudeSample(stamp, float(rpy[0]), float(rpy[1]), float(rpy[2] + yaw_bias))
+        r = range_to_ground(scene.dem, s.p_world, s.R_world_body[:, 2])
+        r += rng.normal(0.0, noise.range_m + noise.range_frac * r)
+        alt = AltimeterSample(stamp, float(r))
+        frame = Frame(stamp, "nadir", img, k)
+        for n, e in est.items():
+            e.on_attitude(att)
+            e.on_altimeter(alt)
+            tc = time.perf_counter()
+            pe = e.on_frames({"nadir": frame})
+            lat[n].append(time.perf_counter() - tc)
+            if pe is not None and pe.is_sendable():
+                got[n].append((t, pe.p_body_in_world_m.copy()))
+        if log and k % 300 == 0 and k:
+            errs = {
+                n: float(np.linalg.norm(g[-1][1] - s.p_world)) if g and g[-1][0] == t else float("nan")
+                for n, g in got.items()
+            }
+            print(f"    t={t:6.1f}s " + " ".join(f"{n}={v:.2f}m" for n, v in errs.items()), flush=True)
+    distance = traj.distance_m()
+    out: dict[str, Any] = {}
+    for n, e in est.items():
+        counters = e.backend_counters()
+        e.close()
+        lt = np.array(lat[n])
+        res: dict[str, Any] = {"n_frames": len(times), "n_estimates": len(got[n])}
+        res["coverage"] = len(got[n]) / len(times)
+        if got[n]:
+            te = np.array([g[0] for g in got[n]])
+            pe_ = np.stack([g[1] for g in got[n]])
+            res.update(ape_stats(times, p_true, te, pe_))
+            res["t_s"] = te
+            # distance flown (truth) at each estimate, for the drift plot
+            cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p_true, axis=0), axis=1))])
+            res["distance_at_estimate_m"] = np.interp(te, times, cum)
+        else:
+            res.update({k: float("nan") for k in STAT_KEYS})
+        res["distance_m"] = distance
+        res["fps"] = float(len(lt) / lt.sum())
+        res["p99_ms"] = float(np.percentile(lt, 99) * 1e3)
+        res["mean_ms"] = float(lt.mean() * 1e3)
+        res["max_ms"] = float(lt.max() * 1e3)
+        res["backend"] = counters
+        res["w_geo"] = methods[n].w_geo
+        out[n] = res
+    out["_flight"] = {
+        "scene": spec.scene_id,
+        "name": scene.name,
+        "trajectory": spec.trajectory,
+        "duration_s": spec.duration_s,
+        "distance_m": distance,
+        "frames": len(times),
+        "dem": deg.describe(),
+        "sun_deg": [
+            scene.sun.intensity,
+            float(np.degrees(scene.sun.azimuth_rad)),
+            float(np.degrees(scene.sun.elevation_rad)),
+        ],
+        "yaw_bias_deg": float(np.degrees(yaw_bias)),
+        "setup_s": setup_s,
+        "render_ms_per_frame": render_s / len(times) * 1e3,
+        "wall_s": time.perf_counter() - t0,
+    }
+    return out
+
+
+def _public(res: dict[str, Any]) -> dict[str, Any]:
+    """Per-method result without the per-frame arrays (for JSON)."""
+    return {k: v for k, v in res.items() if k not in ("errors_m", "t_s", "distance_at_estimate_m")}
+
+
+def _row(name: str, r: dict[str, Any]) -> list[Any]:
+    return (
+        [name]
+        + [r.get(k, float("nan")) for k in STAT_KEYS]
+        + [r["distance_m"], r["fps"], r["p99_ms"], r["coverage"]]
+    )
+
+
+HEAD = ["method", *[f"{k}/m" for k in STAT_KEYS], "dist/m", "fps", "p99/ms", "cover"]
+
+
+def drift_plot(path: Path, flights: list[tuple[str, dict[str, Any]]]) -> None:
+    """Error against distance flown for VO only and terrain LBA."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for label, res in flights:
+        for n, style in (("vo_only", "-"), ("terrain_lba", "-")):
+            r = res.get(n)
+            if r is None or "errors_m" not in r:
+                continue
+            ax.plot(r["distance_at_estimate_m"], r["errors_m"], style, lw=1, label=f"{label} {n}")
+    ax.set_xlabel("distance flown (m)")
+    ax.set_ylabel("position error, no alignment (m)")
+    ax.set_yscale("log")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title("terrain_slam: error vs distance flown")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    print(f"wrote {path}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = parser("terrain_slam", __doc__.splitlines()[0])
+    p.add_argument("--circular-s", type=float, default=None, help="circular flight duration")
+    p.add_argument("--forward-s", type=float, default=None, help="forward flight duration")
+    p.add_argument("--scanning-s", type=float, default=None, help="scanning flight duration")
+    p.add_argument("--scenes", default=None, help="comma-separated scene ids for Table 7 (default all nine)")
+    p.add_argument("--tables", default="4,5,7", help="which tables to run")
+    p.add_argument("--plot", type=Path, default=Path("bench/results/terrain_slam_drift.png"))
+    a = p.parse_args(argv)
+    circ_s = a.circular_s or (40.0 if a.quick else 190.0)
+    fwd_s = a.forward_s or (40.0 if a.quick else 110.0)
+    scan_s = a.scanning_s or (40.0 if a.quick else 150.0)
+    tables = {t.strip() for t in a.tables.split(",")}
+    scenes = a.scenes.split(",") if a.scenes else (["08"] if a.quick else list(SCENE_IDS))
+    confidences = (0.0, 10.0) if a.quick else CONFIDENCES
+    base = replace(TerrainLbaOptions(), backend_apply="fixed_delay")
+    lba = replace(base, w_geo=10.0)
+    vo = replace(base, w_geo=0.0)
+    t_start = time.perf_counter()
+    flights: dict[tuple[str, str], dict[str, Any]] = {}
+
+    def flight(scene: str, kind: str, dur: float, methods: dict[str, TerrainLbaOptions]) -> dict[str, Any]:
+        key = (scene, kind)
+        if key not in flights:
+            print(f"  flight scene {scene} {kind} {dur:.0f}s: {', '.join(methods)}", flush=True)
+            flights[key] = run_flight(FlightSpec(scene, kind, dur, a.seed), methods)
+            f = flights[key]["_flight"]
+            print(
+                f"    done in {f['wall_s']:.0f}s (render {f['render_ms_per_frame']:.0f} ms/frame)", flush=True
+            )
+        return flights[key]
+
+    results: dict[str, Any] = {"quick": a.quick, "seed": a.seed}
+    # scene 08 circular carries Table 4's confidences and both methods of Tables 5 and 7
+    if tables & {"4", "5", "7"} and ("08" in scenes or tables & {"4", "5"}):
+        methods = {f"w{c:g}": replace(base, w_geo=c) for c in (confidences if "4" in tables else (0.0, 10.0))}
+        r08 = flight("08", "circular", circ_s, methods)
+        r08["vo_only"] = r08["w0"]
+        r08["terrain_lba"] = r08["w10"]
+    if "4" in tables:
+        r = flights[("08", "circular")]
+        rows = {f"{c:g}": _public(r[f"w{c:g}"]) for c in confidences}
+        results["table4"] = {
+            "scene": "08",
+            "trajectory": "circular",
+            "flight": r["_flight"],
+            "confidence": rows,
+        }
+        print(
+            table(
+                ["w_G", *HEAD[1:]],
+                [_row(c, v) for c, v in rows.items()],
+                "Table 4 analogue: scene 08, circular",
+            )
+        )
+    if "5" in tables:
+        t5: dict[str, Any] = {}
+        for kind, dur in (("circular", circ_s), ("forward", fwd_s), ("scanning", scan_s)):
+            if a.quick and kind != "circular":
+                continue
+            r = flight("08", kind, dur, {"vo_only": vo, "terrain_lba": lba})
+            t5[kind] = {
+                "flight": r["_flight"],
+                "vo_only": _public(r["vo_only"]),
+                "terrain_lba": _public(r["terrain_lba"]),
+            }
+        results["table5"] = {"scene": "08", "trajectory": t5}
+        rows5 = [_row(f"{k} {m}", v[m]) for k, v in t5.items() for m in ("vo_only", "terrain_lba")]
+        print(table(HEAD, rows5, "Table 5 analogue: scene 08, three trajectories"))
+    if "7" in tables:
+        t7: dict[str, Any] = {}
+        for sid in scenes:
+            r = flight(sid, "circular", circ_s, {"vo_only": vo, "terrain_lba": lba})
+            t7[sid] = {
+                "flight": r["_flight"],
+                "vo_only": _public(r["vo_only"]),
+                "terrain_lba": _public(r["terrain_lba"]),
+                "distance_m": r["_flight"]["distance_m"],
+            }
+        summary = {}
+        for m in ("vo_only", "terrain_lba"):
+            means = [t7[s][m]["mean"] for s in t7]
+            summary[m] = {
+                "mean_of_means_m": float(np.nanmean(means)),
+                "worst_scene_mean_m": float(np.nanmax(means)),
+                "min_fps": float(min(t7[s][m]["fps"] for s in t7)),
+                "max_p99_ms": float(max(t7[s][m]["p99_ms"] for s in t7)),
+            }
+        summary["total_distance_m"] = float(sum(t7[s]["distance_m"] for s in t7))
+        summary["scenes"] = list(t7)
+        results["table7"] = {"trajectory": "circular", "scene": t7, "summary": summary}
+        rows7 = [_row(f"{s} {m}", t7[s][m]) for s in t7 for m in ("vo_only", "terrain_lba")]
+        print(table(HEAD, rows7, "Table 7 analogue: all scenes, circular, Table 6 lighting"))
+        print(
+            f"mean APE over {len(t7)} scenes: vo_only {summary['vo_only']['mean_of_means_m']:.3f} m, "
+            f"terrain_lba {summary['terrain_lba']['mean_of_means_m']:.3f} m "
+            f"(worst scene {summary['terrain_lba']['worst_scene_mean_m']:.3f} m); "
+            f"total distance {summary['total_distance_m']:.0f} m"
+        )
+    plot_flights = [(f"{s} {k}", r) for (s, k), r in flights.items() if k == "circular" and s == "08"]
+    plot_flights += [(f"{s} {k}", r) for (s, k), r in flights.items() if not (k == "circular" and s == "08")][
+        :2
+    ]
+    if plot_flights:
+        drift_plot(a.plot, plot_flights)
+        results["drift_plot"] = str(a.plot)
+    results["wall_s"] = time.perf_counter() - t_start
+    write_json(a.json, results)
+    return 0

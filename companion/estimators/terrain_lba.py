@@ -1,0 +1,409 @@
+"""The ``terrain_lba`` estimator: paper 1's terrain-aided SLAM (section 4).
+
+Per frame (the fast path): Lucas-Kanade tracking and PnP against the map (``companion.vo``), so every
+frame's pose is the VO pose on the map as last corrected by the adjustment. Per key frame (off the
+per-frame path): geo-referencing against the DEM, eq. 21 alignment, and the GTSAM local bundle adjustment
+with the geo term of eq. 23 weighted by w_G (``companion.lba``); its result is written back into the map.
+The covariance sent with each estimate is the newest key frame's marginal from the adjustment, grown with
+the distance flown since.
+
+The back-end runs in a worker process (GTSAM's solver holds the GIL, so a thread would stall the frames),
+and its result is applied either as soon as it arrives (``backend_apply="when_ready"``, the daemon's
+default) or exactly ``backend_delay_frames`` frames after its key frame (``"fixed_delay"``: waits if it is
+late, so the output is the same for the same input, run after run). ``synchronous_backend=True`` runs the
+back-end inline at the key frame and applies it with the same fixed delay (same results as "fixed_delay").
+
+The autopilot's attitude gives the initial rotation and the gravity prior of the adjustment; the altimeter
+gives the monocular scale at initialisation and the height above ground of each geo-fix (eq. 18).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+from collections import deque
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from companion.geometry import CameraIntrinsics, rot_from_rpy, rpy_from_rot
+from companion.georef.dem import Dem
+from companion.georef.georef import GeoReferencer, GeorefOptions
+from companion.georef.shading import Sun
+from companion.lba.backend import Backend, BackendJob, BackendOptions, BackendResult
+from companion.lba.window import LbaOptions, body_covariance
+from companion.types import (
+    AltimeterSample,
+    AttitudeSample,
+    EstimateStatus,
+    Frame,
+    ImuSample,
+    PoseEstimate,
+)
+from companion.vo.odometry import VisualOdometry, VoOptions
+
+
+@dataclass(frozen=True)
+class TerrainLbaOptions:
+    window_size: int = 15  # key frames in the sliding window of the adjustment (paper: 15)
+    w_geo: float = 10.0  # eq. 23 confidence w_G of the geo-referencing term (Table 4: 10); 0 = VO only
+    min_frames_between_kf: int = 20  # key-frame criterion 1 (paper / ORB-SLAM)
+    min_features_kf: int = 50  # key-frame criterion 2
+    max_tracked_ratio_kf: float = 0.9  # key-frame criterion 3
+    max_anchors: int = 10  # older key frames seeing the window's points, held by their marginal prior
+    backend_apply: str = "when_ready"  # "when_ready" (lowest latency) or "fixed_delay" (deterministic)
+    backend_delay_frames: int = 10  # "fixed_delay" / synchronous: frames between a key frame and its result
+    backend_start_timeout_s: float = 120.0  # the worker must be up within this (imports gtsam, builds maps)
+    attitude_max_age_us: int = 100_000  # attitude further than this from a frame's stamp is not used
+    altimeter_max_age_us: int = 200_000
+    initial_sigma_m: float = 1.0  # 1-sigma of the initial position (covariance before any adjustment)
+    initial_sigma_rad: float = float(np.radians(1.0))
+    drift_sigma_per_m: float = 0.02  # position covariance growth per metre flown since the adjusted key frame
+    drift_rad_per_m: float = 1e-4  # attitude covariance growth per metre
+    vo: VoOptions = field(default_factory=VoOptions)
+    backend: BackendOptions = field(default_factory=BackendOptions)
+    georef: GeorefOptions = field(default_factory=GeorefOptions)
+
+    def resolved(self) -> TerrainLbaOptions:
+        """Copy with the top-level fields pushed into the nested options they control."""
+        kf = replace(
+            self.vo.keyframes,
+            min_frames_between=self.min_frames_between_kf,
+            min_features=self.min_features_kf,
+            max_tracked_ratio=self.max_tracked_ratio_kf,
+        )
+        lba: LbaOptions = replace(self.backend.lba, w_geo=self.w_geo)
+        return replace(
+            self,
+            vo=replace(self.vo, keyframes=kf),
+            backend=replace(self.backend, lba=lba, drift_sigma_per_m=self.drift_sigma_per_m),
+        )
+
+
+def _make_backend(options: BackendOptions, geo_args: tuple | None) -> Backend:
+    locate = None
+    if geo_args is not None and options.lba.w_geo > 0:
+        dem, sun, intrinsics, R_body_cam, georef_options = geo_args
+        geo = GeoReferencer(dem, sun, intrinsics, R_body_cam, georef_options)
+
+        def locate(image, R_world_body, p_pred_world, alt_agl_m):  # noqa: ANN001, ANN202
+            return geo.locate(image, R_world_body, p_pred_world, alt_agl_m)
+
+    return Backend(options, locate)
+
+
+def _worker_main(conn: Any, options: BackendOptions, geo_args: tuple | None) -> None:
+    """Worker process: build the back-end, then answer jobs until None."""
+    backend = _make_backend(options, geo_args)
+    conn.send("ready")
+    while True:
+        try:
+            job = conn.recv()
+        except EOFError:
+            return
+        if job is None:
+            return
+        try:
+            conn.send(backend.process(job))
+        except Exception as e:  # noqa: BLE001 - reported to the front-end, counted, never fatal
+            conn.send(f"{type(e).__name__}: {e}")
+
+
+class _History:
+    """Recent (stamp_us, value) samples, nearest lookup."""
+
+    def __init__(self, maxlen: int = 400) -> None:
+        self.stamps: deque[int] = deque(maxlen=maxlen)
+        self.values: deque[Any] = deque(maxlen=maxlen)
+
+    def add(self, stamp_us: int, value: Any) -> None:
+        if self.stamps and stamp_us < self.stamps[-1]:
+            return  # out of order: keep the history monotonic
+        self.stamps.append(stamp_us)
+        self.values.append(value)
+
+    def nearest(self, stamp_us: int, max_gap_us: int) -> Any | None:
+        if not self.stamps:
+            return None
+        s = np.fromiter(self.stamps, np.int64, len(self.stamps))
+        i = int(np.argmin(np.abs(s - stamp_us)))
+        return self.values[i] if abs(int(s[i]) - stamp_us) <= max_gap_us else None
+
+
+class TerrainLbaEstimator:
+    """Implements ``companion.types.Estimator`` for one nadir camera."""
+
+    cameras = ("nadir",)
+
+    def __init__(
+        self,
+        options: TerrainLbaOptions,
+        intrinsics: CameraIntrinsics,
+        R_body_cam: np.ndarray,
+        dem: Dem,
+        sun: Sun,
+        initial_p_world: np.ndarray,
+        initial_yaw_rad: float = 0.0,
+        synchronous_backend: bool = False,
+    ) -> None:
+        if options.backend_apply not in ("when_ready", "fixed_delay"):
+            raise ValueError(
+                f"backend_apply must be 'when_ready' or 'fixed_delay', got {options.backend_apply!r}"
+            )
+        self.opt = options.resolved()
+        self.intr = intrinsics
+        self.K = intrinsics.K
+        self.R_body_cam = np.asarray(R_body_cam, float)
+        self.p_body_in_cam = np.zeros(3)  # the camera sits at the body origin (no lever arm configured)
+        self.vo = VisualOdometry(self.opt.vo, self.K)
+        self._dem = dem.filled()
+        self.initial_p_world = np.asarray(initial_p_world, float)
+        self.initial_yaw_rad = float(initial_yaw_rad)
+        self.synchronous = synchronous_backend
+        self.fixed_delay = synchronous_backend or self.opt.backend_apply == "fixed_delay"
+        geo_args = (dem, sun, intrinsics, self.R_body_cam, self.opt.georef) if self.opt.w_geo > 0 else None
+        self._backend: Backend | None = None
+        self._proc: Any = None
+        self._conn: Any = None
+        if synchronous_backend:
+            self._backend = _make_backend(self.opt.backend, geo_args)
+        else:
+            ctx = mp.get_context("spawn")
+            self._conn, child = ctx.Pipe()
+            self._proc = ctx.Process(
+                target=_worker_main, args=(child, self.opt.backend, geo_args), daemon=True, name="terrain_lba"
+            )
+            self._proc.start()
+            child.close()
+            if not self._conn.poll(self.opt.backend_start_timeout_s) or self._conn.recv() != "ready":
+                self.close()
+                raise RuntimeError("terrain_lba back-end worker did not start")
+        self._attitude = _History()
+        self._range = _History()
+        self.frame_index = -1
+        self.epoch = 0
+        self.reset_counter = 0
+        self._last_p_body: np.ndarray | None = None
+        self._dist_m = 0.0
+        self._kf_dist: dict[int, float] = {}
+        self._kf_frame: dict[int, dict] = {}  # key frame id -> what its back-end job needs
+        self._wanted: int | None = None  # newest key frame waiting for the back-end
+        self._in_flight: tuple[int, int, int] | None = None  # (kf id, epoch, due frame)
+        self._sync_result: BackendResult | str | None = None
+        self._cov_kf: tuple[int, np.ndarray] | None = None  # (kf id, body covariance) of the last result
+        self.last_result: BackendResult | None = None
+        self.counters = {
+            "frames": 0,
+            "lost": 0,
+            "reinit": 0,
+            "backend_jobs": 0,
+            "backend_errors": 0,
+            "no_attitude": 0,
+        }
+
+    # -- inputs from the autopilot ------------------------------------------------------------------
+    def on_attitude(self, s: AttitudeSample) -> None:
+        self._attitude.add(s.stamp_us, rot_from_rpy(s.roll_rad, s.pitch_rad, s.yaw_rad))
+
+    def on_imu(self, s: ImuSample) -> None:
+        """Not used: attitude comes from ATTITUDE, motion from the images."""
+
+    def on_altimeter(self, s: AltimeterSample) -> None:
+        if np.isfinite(s.range_m) and s.range_m > 0:
+            self._range.add(s.stamp_us, float(s.range_m))
+
+    def close(self) -> None:
+        if self._proc is not None:
+            try:
+                self._conn.send(None)
+            except (OSError, ValueError):
+                pass  # the pipe is already gone: the worker exits by itself
+            self._proc.join(timeout=5.0)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join(timeout=5.0)
+            self._proc = None
+
+    # -- back-end -----------------------------------------------------------------------------------
+    def _submit(self) -> None:
+        if self._wanted is None or self._in_flight is not None or self.vo.state != "tracking":
+            return
+        k = self._wanted
+        self._wanted = None
+        if k not in self.vo.kfs:
+            return
+        snap = self.vo.snapshot(self.opt.window_size, self.opt.max_anchors)
+        if len(snap.kf_ids) < 2 or int(snap.kf_ids[-1]) != k:
+            return
+        extra = self._kf_frame.pop(k)
+        T = self.vo.kfs[k].T_world_cam
+        R_wb = T[:3, :3] @ self.R_body_cam.T
+        prev = [kk for kk in self._kf_dist if kk < k]
+        d_prev = self._kf_dist[k] - self._kf_dist[max(prev)] if prev else 0.0
+        rng = extra["range_m"]
+        job = BackendJob(
+            snapshot=snap,
+            newest_kf=k,
+            image=extra["image"] if self.opt.w_geo > 0 else None,
+            R_world_body=R_wb,
+            p_body_in_world=T[:3, :3] @ self.p_body_in_cam + T[:3, 3],
+            # the altimeter ranges along body down; the geo-fix wants the vertical height above ground
+            alt_agl_m=None if rng is None else float(rng) * float(R_wb[2, 2]),
+            dist_since_prev_kf_m=d_prev,
+            p_body_in_cam=self.p_body_in_cam,
+            K=self.K,
+            epoch=self.epoch,
+        )
+        self.counters["backend_jobs"] += 1
+        self._in_flight = (k, self.epoch, self.frame_index + self.opt.backend_delay_frames)
+        if self._backend is not None:
+            self._sync_result = self._backend.process(job)
+        else:
+            self._conn.send(job)
+
+    def _collect(self) -> None:
+        """Apply the in-flight result if it is due (fixed delay: wait for it) or ready (when_ready)."""
+        if self._in_flight is None:
+            return
+        k, epoch, due = self._in_flight
+        if self._backend is not None:
+            if self.frame_index < due:
+                return
+            res = self._sync_result
+            self._sync_result = None
+        else:
+            if self.fixed_delay:
+                if self.frame_index < due:
+                    return
+                res = self._conn.recv()
+            else:
+                if not self._conn.poll():
+                    return
+                res = self._conn.recv()
+        self._in_flight = None
+        if isinstance(res, str) or res is None:
+            self.counters["backend_errors"] += 1
+            return
+        if res.epoch != self.epoch or self.vo.state != "tracking":
+            return  # the map it refers to was reset
+        self.vo.apply_correction(
+            res.newest_kf,
+            res.T_align,
+            res.kf_ids,
+            res.T_world_cam,
+            res.lm_ids,
+            res.p_world,
+            res.outlier_kf,
+            res.outlier_lm,
+        )
+        self.last_result = res
+        if np.all(np.isfinite(res.cov_newest)) and res.newest_kf in self.vo.kfs:
+            T = self.vo.kfs[res.newest_kf].T_world_cam
+            self._cov_kf = (
+                res.newest_kf,
+                body_covariance(T, res.cov_newest, self.R_body_cam, self.p_body_in_cam),
+            )
+
+    # -- frames -------------------------------------------------------------------------------------
+    def _covariance(self) -> np.ndarray:
+        o = self.opt
+        if self._cov_kf is not None and self._cov_kf[0] in self._kf_dist:
+            base = self._cov_kf[1]
+            d = self._dist_m - self._kf_dist[self._cov_kf[0]]
+        else:
+            base = np.diag([o.initial_sigma_m**2] * 3 + [o.initial_sigma_rad**2] * 3)
+            d = self._dist_m
+        grow = np.diag([(o.drift_sigma_per_m * d) ** 2] * 3 + [(o.drift_rad_per_m * d) ** 2] * 3)
+        return base + grow
+
+    def _reinit(self) -> None:
+        self.vo.reset()
+        self.epoch += 1
+        self.reset_counter += 1
+        self.counters["reinit"] += 1
+        self._wanted = None
+        self._kf_frame.clear()
+        self._cov_kf = None
+
+    def on_frames(self, frames: dict[str, Frame]) -> PoseEstimate | None:
+        frame = frames.get("nadir")
+        if frame is None:
+            return None
+        self.frame_index += 1
+        self.counters["frames"] += 1
+        t = frame.stamp_us
+        self._collect()
+        R_wb_att = self._attitude.nearest(t, self.opt.attitude_max_age_us)
+        if R_wb_att is None:
+            self.counters["no_attitude"] += 1
+            if self.vo.state != "tracking":
+                R_wb_att = rot_from_rpy(0.0, 0.0, self.initial_yaw_rad) if self._last_p_body is None else None
+        R_wc_att = None if R_wb_att is None else R_wb_att @ self.R_body_cam
+        rng = self._range.nearest(t, self.opt.altimeter_max_age_us)
+        p_start = self.initial_p_world if self._last_p_body is None else self._last_p_body
+        if rng is None and self.vo.state != "tracking" and R_wb_att is not None:
+            rng = self._range_from_dem(p_start, R_wb_att)
+        st = self.vo.process(frame.image, t, R_wc_att, rng, p_start)
+        if st.state == "lost":
+            self.counters["lost"] += 1
+            self._reinit()
+            return self._not_ok(t, EstimateStatus.LOST, st)
+        if st.T_world_cam is None:
+            return self._not_ok(t, EstimateStatus.INITIALISING, st)
+        T = st.T_world_cam
+        R_wb = T[:3, :3] @ self.R_body_cam.T
+        p_body = T[:3, :3] @ self.p_body_in_cam + T[:3, 3]
+        if self._last_p_body is not None:
+            self._dist_m += float(np.linalg.norm(p_body - self._last_p_body))
+        self._last_p_body = p_body
+        if st.keyframe_id is not None:
+            k = st.keyframe_id
+            self._kf_dist[k] = self._dist_m
+            for old in [kk for kk in self._kf_dist if kk < k - 4 * self.opt.vo.max_keyframes_kept]:
+                del self._kf_dist[old]
+            self._kf_frame = {k: {"image": frame.image, "range_m": rng}}
+            self._wanted = k
+        self._submit()
+        res = self.last_result
+        info = {
+            "tracks": st.n_tracks,
+            "inliers": st.n_inliers,
+            "keyframe": st.keyframe_id,
+            "distance_m": self._dist_m,
+            "geo": None if res is None else res.geo.get("status"),
+        }
+        return PoseEstimate(
+            stamp_us=t,
+            p_body_in_world_m=p_body,
+            rpy_rad=rpy_from_rot(R_wb),
+            covariance=self._covariance(),
+            reset_counter=self.reset_counter,
+            quality=float(min(1.0, st.n_inliers / max(self.opt.vo.tracker.max_features, 1))),
+            status=EstimateStatus.OK,
+            info=info,
+        )
+
+    def _range_from_dem(self, p_body: np.ndarray, R_world_body: np.ndarray) -> float | None:
+        """Without an altimeter: range along body down to the DEM below ``p_body`` (flat-ground model)."""
+        h = float(self._dem.height_at(p_body[0], p_body[1])[0])
+        cos_tilt = float(R_world_body[2, 2])
+        if not np.isfinite(h) or cos_tilt < 0.3 or -p_body[2] - h <= 0:
+            return None
+        return (-p_body[2] - h) / cos_tilt
+
+    def _not_ok(self, t: int, status: EstimateStatus, st: Any) -> PoseEstimate:
+        p = self.initial_p_world if self._last_p_body is None else self._last_p_body
+        return PoseEstimate(
+            stamp_us=t,
+            p_body_in_world_m=np.array(p, float),
+            rpy_rad=np.array([0.0, 0.0, self.initial_yaw_rad]),
+            covariance=self._covariance(),
+            reset_counter=self.reset_counter,
+            quality=0.0,
+            status=status,
+            info={"tracks": st.n_tracks, "state": st.state},
+        )
+
+    def backend_counters(self) -> dict:
+        """Running totals of the back-end (key frames, fixes accepted / rejected / failed, alignments)."""
+        return {} if self.last_result is None else dict(self.last_result.counters)
