@@ -64,13 +64,13 @@ def lookup(img: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.ndarray:
     if len(shape) == 2 and max(shape) < 32767:
         return cv2.remap(img, np.asarray(col, np.float32), np.asarray(row, np.float32), cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
-    r = np.asarray(row, np.float32).ravel()
-    c = np.asarray(col, np.float32).ravel()
-    n, w = r.size, 1024
+    r_flat = np.asarray(row, np.float32).ravel()
+    c_flat = np.asarray(col, np.float32).ravel()
+    n, w = r_flat.size, 1024
     m = max(-(-n // w), 1)
-    r = np.concatenate([r, np.zeros(m * w - n, np.float32)]).reshape(m, w)
-    c = np.concatenate([c, np.zeros(m * w - n, np.float32)]).reshape(m, w)
-    out = cv2.remap(img, c, r, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    r2 = np.concatenate([r_flat, np.zeros(m * w - n, np.float32)]).reshape(m, w)
+    c2 = np.concatenate([c_flat, np.zeros(m * w - n, np.float32)]).reshape(m, w)
+    out = cv2.remap(img, c2, r2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     ch = out.shape[2:] if out.ndim == 3 else ()
     return out.reshape(m * w, *ch)[:n].reshape(*shape, *ch)
 
@@ -277,11 +277,11 @@ def _pow(x: np.ndarray, k: float) -> np.ndarray:
     """x**k; by repeated squaring when k is a small whole number (several times faster than np.power)."""
     if float(k).is_integer() and 1 <= k <= 64:
         n = int(k)
-        result = None
+        result = np.ones_like(x)
         base = x
         while n:
             if n & 1:
-                result = base if result is None else result * base
+                result = result * base
             n >>= 1
             if n:
                 base = base * base
@@ -346,7 +346,7 @@ def _intersect(
         part = np.full(int(ok_c.sum()), np.nan, np.float32)
         tracer.march(p, gnc.ravel()[ok_c], gec.ravel()[ok_c], tol_m=0.02, max_iter=COARSE_MAX_ITER, last=part)
         s_c[ok_c] = part
-    s_c = s_c.reshape(gnc.shape)
+    s_c = s_c.reshape(gnc.shape)  # type: ignore[assignment]
     gn, ge = grid.runs(R_world_cam, grid.x, grid.y)
     down = np.isfinite(gn)
     if np.isnan(s_c).all():
@@ -572,7 +572,7 @@ class EuropaCameras:
         vis, temp = self.radiance(R_world_cam, p_cam_in_world)
         rng = np.random.default_rng([int(seed), 0xE0])
         miss = np.isnan(vis)
-        dn = np.nan_to_num(vis * np.float32(self.exposure), nan=0.0)
+        dn: np.ndarray = np.nan_to_num(vis * np.float32(self.exposure), nan=0.0)
         if self.visible_noise is not None:
             vn = self.visible_noise
             var = np.float32(vn.read_sigma_dn**2) + np.maximum(dn, 0.0) / np.float32(vn.electrons_per_dn)

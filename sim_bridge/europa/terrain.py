@@ -218,12 +218,17 @@ def europa_heights(
         q = (ax / (0.5 * d * elong)) ** 2 + (ay / (0.5 * d / elong)) ** 2
         large[sl] += h * np.exp(-2.0 * q)
     for _ in range(_count(rng, opts.valley_count, area_scale)):
-        w = float(rng.uniform(*opts.valley_width_m))
-        depth = w * float(rng.uniform(*opts.valley_depth_frac))
+        vw = float(rng.uniform(*opts.valley_width_m))
+        depth = vw * float(rng.uniform(*opts.valley_depth_frac))
         pts = _polyline(rng, float(rng.uniform(150, 400)), 4.0, 0.08)
         rc = (float(rng.uniform(0, shape_c[0] - 1)), float(rng.uniform(0, shape_c[1] - 1)))
         _add_polyline_feature(
-            large, cell_c, rc, pts, w, lambda d, w=w, depth=depth: -depth * np.cos(0.5 * np.pi * d / w) ** 2
+            large,
+            cell_c,
+            rc,
+            pts,
+            vw,
+            lambda d, vw=vw, depth=depth: -depth * np.cos(0.5 * np.pi * d / vw) ** 2,
         )
     large_c = base + large / max(large.std(), 1e-9) * 0.6
     large_all = cv2.resize(
