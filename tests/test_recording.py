@@ -160,7 +160,7 @@ def replay_into_subscriber(
     arrived: list[tuple[int, Any]] = []
     sub = FrameSubscriber(b, {"nadir": KEY}, stamp_gate=gate, sink=lambda f: arrived.append((now_us(), f)))
     res = BagReplayer(a, bag, options).run()
-    n = sum(res.published.values())
+    n = res.published.get("/" + KEY, 0)
     wait_for(lambda: sub.counters["nadir"].received >= n, 3.0)
     sub.close()
     return res, arrived, sub
@@ -228,6 +228,9 @@ def test_bad_messages_in_a_bag_are_counted_and_skipped(sessions, tmp_path, stora
     with Writer(path, version=8, storage_plugin=storage) as w:
         conn = w.add_connection("/uav/camera/nadir", IMAGE_MSGTYPE, typestore=TS)
         other = w.add_connection("/tf_like", STRING_MSGTYPE, typestore=TS)
+        thermal = w.add_connection("/uav/camera/thermal", "sensor_msgs/msg/CompressedImage", typestore=TS)
+        w.write(thermal, t0 * 1000, encode_compressed(pattern(1), t0))
+        w.write(thermal, t0 * 1000 + 5_000_000, encode_compressed(pattern(2), t0 + 5000, fmt="jpeg")[:-40])
         log_ns = t0 * 1000
         items = [good[0], good[1], bad["truncated"], good[2], bad["bad_cdr"], good[3], bad["empty"]]
         items += [good[4], bad["size_mismatch"], bad["unknown_encoding"], good[5]]
@@ -235,10 +238,14 @@ def test_bad_messages_in_a_bag_are_counted_and_skipped(sessions, tmp_path, stora
             w.write(conn, log_ns + k * 10_000_000, payload)
         w.write(other, log_ns, bytes(TS.serialize_cdr(TS.types[STRING_MSGTYPE](data="x"), STRING_MSGTYPE)))
     res, arrived, _ = replay_into_subscriber(
-        a, b, path, ReplayOptions(rate=4.0, restamp=True, clock="log"), lambda: StampGate()
+        a,
+        b,
+        path,
+        ReplayOptions(rate=4.0, restamp=True, clock="log", wait_subscribers_s=1.0),
+        lambda: StampGate(),
     )
-    assert res.published == {"/uav/camera/nadir": 6}
-    assert res.bad == {reason: 1 for reason in bad}
+    assert res.published == {"/uav/camera/nadir": 6, "/uav/camera/thermal": 1}
+    assert res.bad == {reason: 1 for reason in bad} | {"truncated": 2}
     assert res.skipped_topics == {"/tf_like": STRING_MSGTYPE}
     assert [f.image.tobytes() for _, f in arrived] == [pattern(k).tobytes() for k in range(6)]
 
@@ -284,7 +291,19 @@ def test_cli_record_then_replay(endpoint, tmp_path, capsys) -> None:
     th.start()
     bag = tmp_path / "cli_bag"
     try:
-        rc = cli.main(["record", "--out", str(bag), "--duration", "1.0", "--zenoh-connect", endpoint])
+        rc = cli.main(
+            [
+                "record",
+                "--out",
+                str(bag),
+                "--key",
+                "uav/camera/*",
+                "--duration",
+                "1.0",
+                "--zenoh-connect",
+                endpoint,
+            ]
+        )
     finally:
         stop.set()
         th.join()
@@ -310,3 +329,4 @@ def test_cli_record_then_replay(endpoint, tmp_path, capsys) -> None:
     assert replayed["published"] == {"/uav/camera/nadir": n} and replayed["bad"] == {}
     assert len(got) == n
     assert cli.main(["replay", str(tmp_path / "missing_bag"), "--zenoh-listen", endpoint]) == 2
+    assert cli.main(["record", "--out", str(bag), "--duration", "0.1", "--zenoh-connect", endpoint]) == 2
