@@ -4,13 +4,19 @@ intersection, paper 1 eq. 3 Lambertian shading x albedo with cast shadows, senso
 How a frame is made (all vectorised over the H x W ray grid, bilinear lookups with ``cv2.remap``):
 1. Once per (DEM, albedo, sun): the radiance map on the terrain grid,
    ``L * albedo * (ambient + (1 - ambient) * max(n . s, 0) * lit)`` (``lit`` = not in a cast shadow),
-   and its image pyramid (for anti-aliasing when a pixel covers several cells); a coarse map of the
-   local maximum terrain slope (Lipschitz bound of the heightfield).
-2. Per frame, each pixel ray p(t) = c + t d is intersected with the heightfield: start where the ray
-   crosses the highest terrain, then take conservative steps t += g / (|d_down| + S |d_horiz|), where g
-   is the height of the ray point above the terrain and S the local slope bound — such a step can never
-   pass through the terrain (sphere tracing for heightfields), so occlusion is right. A few secant steps
-   finish; rays that have not converged keep stepping (on the shrinking subset) until they do.
+   and its image pyramid (for anti-aliasing when a pixel covers several cells); per block of cells, at
+   two block sizes, the heightfield's slope bound (Lipschitz constant) and highest terrain; the height
+   gradient (for Newton steps).
+2. Per frame, each pixel ray p(t) = c + t d is intersected with the heightfield, coarse to fine. On a
+   ray grid 4x coarser than the image, a robust march: start where the ray crosses the highest terrain,
+   then take safe steps — down to the highest terrain of the surrounding block, or g / (|d_down| + S
+   |d_horiz|) with g the height of the ray point above the terrain and S the block's slope bound (sphere
+   tracing for heightfields) — which never pass through the terrain, so occlusion is right (a minimum
+   step of half a cell, against stalling on grazing rays, may skip thinner slivers); near the surface
+   secant steps, and once a point below the terrain is found, false position in the bracket.
+   Each finer grid starts from the interpolated coarser depths and takes two Newton steps; pixels at
+   depth discontinuities, or where Newton does not converge within the neighbours' depth range, are
+   marched robustly. Checked against a brute-force march in tests/test_render.py.
 3. The radiance is sampled at the hit points (trilinear between the two pyramid levels bracketing the
    frame's ground sample distance), scaled by the exposure to digital numbers (DN), and sensor noise is
    added: shot noise (Gaussian approximation of Poisson with ``electrons_per_dn``) and read noise.

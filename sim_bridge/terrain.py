@@ -117,13 +117,16 @@ def _spectral_noise(
     out_cols = -(-cols // 2**k) + 2
     gr = int(np.ceil(out_rows * 1.25))
     gc = int(np.ceil(out_cols * 1.25))
-    ky = scipy.fft.fftfreq(gr, d=gen_cell)[:, None]
-    kx = scipy.fft.rfftfreq(gc, d=gen_cell)[None, :]
-    kk = np.sqrt(kx * kx + ky * ky)
-    with np.errstate(divide="ignore"):
-        amp = np.where((kk >= 1.0 / lmax_m) & (kk <= 1.0 / lmin_m), kk ** (-beta / 2.0), 0.0)
-    spec = (rng.standard_normal(amp.shape) + 1j * rng.standard_normal(amp.shape)) * amp
-    field = scipy.fft.irfft2(spec, s=(gr, gc)).astype(np.float32)[:out_rows, :out_cols]
+    ky = scipy.fft.fftfreq(gr, d=gen_cell).astype(np.float32)[:, None]
+    kx = scipy.fft.rfftfreq(gc, d=gen_cell).astype(np.float32)[None, :]
+    k2 = kx * kx + ky * ky
+    band = (k2 >= np.float32(lmax_m**-2)) & (k2 <= np.float32(lmin_m**-2))
+    amp = np.zeros(k2.shape, np.float32)
+    amp[band] = k2[band] ** np.float32(-beta / 4.0)  # |k|^(-beta/2)
+    spec = np.empty(k2.shape, np.complex64)
+    spec.real = rng.standard_normal(k2.shape, dtype=np.float32) * amp
+    spec.imag = rng.standard_normal(k2.shape, dtype=np.float32) * amp
+    field = scipy.fft.irfft2(spec, s=(gr, gc))[:out_rows, :out_cols].astype(np.float32)
     for _ in range(k):
         field = cv2.pyrUp(field)
     field = np.ascontiguousarray(field[:rows, :cols])
@@ -156,6 +159,20 @@ def _ridged(
         lam /= 2.0
         amp *= gain
     return out / total
+
+
+def _smooth(img: np.ndarray, sigma_cells: float) -> np.ndarray:
+    """Gaussian blur of std ``sigma_cells``; wide blurs are done on a downsampled copy (same result to a few
+    per cent of the blurred signal, tens of times faster than a 6-sigma kernel at full resolution)."""
+    f = 1
+    while sigma_cells / (2 * f) >= 4.0:
+        f *= 2
+    if f == 1:
+        return cv2.GaussianBlur(img, (0, 0), sigma_cells, borderType=cv2.BORDER_REFLECT)
+    rows, cols = img.shape
+    small = cv2.resize(img, (-(-cols // f), -(-rows // f)), interpolation=cv2.INTER_AREA)
+    small = cv2.GaussianBlur(small, (0, 0), np.sqrt(max(sigma_cells**2 / f**2 - 0.25, 0.25)))
+    return cv2.resize(small, (cols, rows), interpolation=cv2.INTER_LINEAR)
 
 
 def _rescale(h: np.ndarray, relief_m: float) -> np.ndarray:
@@ -282,9 +299,11 @@ def _fine(rng, shape, cell_m, sigma_m: float) -> np.ndarray:
 
 def _scene_highlands(rng, shape, cell_m, coarse: bool):
     if coarse:
-        # GoogleMap-derived (8.6 m DEM resized x20): long wavelengths, little fine detail
-        h = _rescale(_spectral_noise(rng, shape, cell_m, 4.2, 8.0, 600.0), 75.0)
-        return h + _fine(rng, shape, cell_m, 0.01), None
+        # GoogleMap-derived (8.6 m DEM resized x20, so nothing finer than ~1 m): smoother spectrum, no
+        # small craters or roughness
+        h = _spectral_noise(rng, shape, cell_m, 4.4, 1.5, 600.0)
+        h = h + 0.15 * np.abs(_spectral_noise(rng, shape, cell_m, 3.8, 6.0, 100.0))
+        return _rescale(h, 75.0), None
     h = _spectral_noise(rng, shape, cell_m, 4.0, 2.0, 600.0)
     h = h + 0.4 * np.abs(_spectral_noise(rng, shape, cell_m, 3.5, 10.0, 150.0))  # eroded knobs
     h = _rescale(h, 50.0)  # metres, so crater sizes below are in metres too
@@ -364,8 +383,7 @@ def _albedo(
     """Albedo in (0, 1]: base Mars ~0.25, bright dust in low/concave areas and on gentle slopes, large
     bright/dark patches, fine mottling, dark rocks. float32 (rows, cols)."""
     shape = h.shape
-    s = max(10.0 / cell_m, 1.0)
-    local = h - cv2.GaussianBlur(h, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+    local = h - _smooth(h, 10.0 / cell_m)
     lstd = float(local.std()) or 1.0
     dust = np.clip(-local / (2.0 * lstd), 0.0, 1.0)  # hollows collect dust
     gy, gx = np.gradient(h, cell_m)
