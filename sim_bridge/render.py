@@ -199,9 +199,9 @@ class VisibleRenderer:
             )
         H, W = intrinsics.height, intrinsics.width
         if noise is not None:
-            bank_rng = np.random.default_rng(noise.seed)
+            bank_rng = np.random.default_rng(noise.seed % 2**63)
             self._bank = bank_rng.standard_normal((max(noise.bank_frames, 1), H, W), dtype=np.float32)
-            self._frame_rng = np.random.default_rng([noise.seed, 1])
+            self._frame_rng = np.random.default_rng([noise.seed % 2**63, 1])
 
     # ------------------------------------------------------------------------------------------------------
 
@@ -399,7 +399,7 @@ class VisibleRenderer:
 
     def _shade(self, hit: _Hit) -> np.ndarray:
         # ground sample distance at the frame's median depth, in cells -> pyramid level (fractional)
-        ts = hit.t[hit.valid]
+        ts = hit.t[::4, ::4][hit.valid[::4, ::4]]
         if ts.size:
             gsd_cells = float(np.median(ts)) / self.intrinsics.fx / self.dem.cell_m
         else:
@@ -434,7 +434,11 @@ class VisibleRenderer:
         img = np.nan_to_num(img, nan=0.0)
         if self.noise is not None:
             nz = self.noise
-            rng = self._frame_rng if seed is None else np.random.default_rng([nz.seed, 2, int(seed)])
+            rng = (
+                self._frame_rng
+                if seed is None
+                else np.random.default_rng([nz.seed % 2**63, 2, int(seed) % 2**63])
+            )
             k = int(rng.integers(0, self._bank.shape[0]))
             shift = (int(rng.integers(0, img.shape[0])), int(rng.integers(0, img.shape[1])))
             z = np.roll(self._bank[k], shift, axis=(0, 1))

@@ -225,6 +225,9 @@ def test_noise_statistics_and_determinism_by_seed(canyon):
     c = r.render(R, p, seed=8)
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
+    # any integer seed works (timestamps, negative numbers)
+    np.testing.assert_array_equal(r.render(R, p, seed=-3), r.render(R, p, seed=-3))
+    assert not np.array_equal(r.render(R, p, seed=2**40), a)
     ref = clean.radiance_at_pixels(R, p)
     resid = a.astype(float) - ref
     ok = (ref > 20) & (ref < 230)
