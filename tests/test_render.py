@@ -136,25 +136,28 @@ def _brute_force_t(dem: Dem, c: np.ndarray, d: np.ndarray, t_max: float, dt: flo
     return out
 
 
-@pytest.mark.parametrize("which", ["canyon", "mountain"])
-def test_intersection_matches_brute_force_march_on_steep_terrain(which, request):
+@pytest.mark.parametrize(
+    ("which", "intr"), [("canyon", K160), ("mountain", K160), ("canyon", K480), ("mountain", K480)]
+)
+def test_intersection_matches_brute_force_march_on_steep_terrain(which, intr, request):
     """Oblique views of steep terrain (occlusion by ridges and canyon walls): the fast intersection finds
-    the same first hit as a fine brute-force march."""
+    the same first hit as a fine brute-force march (at 480 px the coarse-to-fine path has three levels)."""
     sc = request.getfixturevalue(which)
-    r = VisibleRenderer(sc.dem, sc.albedo, sc.sun, K160, noise=None)
+    r = VisibleRenderer(sc.dem, sc.albedo, sc.sun, intr, noise=None)
     top = float(sc.dem.height_m.max())
     R, p = camera_pose(rot_from_rpy(0.1, 0.75, 0.6), np.array([-45.0, -50.0, -(top + 15.0)]))
     gp = r.ground_points(R, p)
     rng = np.random.default_rng(0)
-    vv = rng.integers(0, 160, 150)
-    uu = rng.integers(0, 160, 150)
-    d = (R @ np.stack([(uu - K160.cx) / K160.fx, (vv - K160.cy) / K160.fy, np.ones(150)])).T
+    vv = rng.integers(0, intr.height, 150)
+    uu = rng.integers(0, intr.width, 150)
+    d = (R @ np.stack([(uu - intr.cx) / intr.fx, (vv - intr.cy) / intr.fy, np.ones(150)])).T
     t_ref = _brute_force_t(sc.dem, p, d, t_max=300.0, dt=0.02)
     t_fast = (gp[vv, uu] - p) @ np.array([0, 0, 1.0]) / d[:, 2]
     both = np.isfinite(t_ref) & np.isfinite(t_fast)
     assert both.mean() > 0.6  # the rest look past the far edge of the 150 m raster
     assert (np.isfinite(t_ref) == np.isfinite(t_fast)).mean() > 0.97
     err = np.abs(t_fast[both] - t_ref[both])
+    # the odd disagreement is a ray grazing a crest by millimetres (a silhouette pixel)
     assert np.mean(err < 0.05) > 0.97, np.sort(err)[-10:]
 
 
