@@ -255,6 +255,9 @@ def _craters(
         outside = rim * np.clip(x, 1.0, None) ** -3.0
         prof = np.where(x < 1.0, inside, outside)
         prof = np.where(x < 3.0, prof - rim / 27.0 * (x >= 1.0), 0.0)  # ejecta reaches 0 at 3 R
+        sigma_cells = 0.06 * R / cell_m
+        if sigma_cells >= 1.0:  # round the rim crest (the profile's slope jumps there)
+            prof = _smooth(prof.astype(np.float32), sigma_cells)
         win = out[ra:rb, ca:cb]
         # fill the bowl relative to the local mean so craters on slopes keep their shape
         base = float(win[x < 1.0].mean()) if (x < 1.0).any() else float(win.mean())
