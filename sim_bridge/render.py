@@ -35,6 +35,9 @@ from companion.geometry import CameraIntrinsics, pixel_rays_cam
 from companion.georef.dem import Dem
 from companion.georef.shading import Sun, cast_shadow_mask, lambert_shading
 
+PAPER_CAMERA = CameraIntrinsics.from_focal_sensor(480, 480, 36.0, 36.0)
+"""Paper 1's camera: 480 x 480 px, focal length = sensor width = 36 mm, so fx = 480 px, 53.13 deg FOV."""
+
 
 @dataclass(frozen=True)
 class SensorNoise:

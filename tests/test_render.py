@@ -10,10 +10,10 @@ from scipy import ndimage
 from companion.geometry import CameraIntrinsics, camera_pose, pixel_rays_cam, project, rot_from_rpy
 from companion.georef.dem import Dem
 from companion.georef.shading import Sun
-from sim_bridge.render import SensorNoise, VisibleRenderer
+from sim_bridge.render import PAPER_CAMERA, SensorNoise, VisibleRenderer
 from sim_bridge.terrain import make_scene
 
-K480 = CameraIntrinsics.from_focal_sensor(480, 480, 36, 36)
+K480 = PAPER_CAMERA
 K160 = CameraIntrinsics.from_focal_sensor(160, 160, 36, 36)  # same 53.13 deg field of view, fewer rays
 
 
@@ -34,6 +34,7 @@ def mountain():
 
 
 def test_intrinsics_match_the_paper_camera():
+    assert (K480.width, K480.height) == (480, 480)
     assert K480.fx == pytest.approx(480.0)
     assert np.degrees(2 * np.arctan(240 / K480.fx)) == pytest.approx(53.13, abs=0.01)
 
