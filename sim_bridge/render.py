@@ -164,7 +164,7 @@ class VisibleRenderer:
             p = float(np.percentile(rad[::4, ::4], 99.5))
             exposure = 200.0 / p if p > 0 else 1.0
         self.exposure = float(exposure)
-        self._pyramid = [rad]
+        self._pyramid: list[np.ndarray] = [rad]
         while min(self._pyramid[-1].shape) > 64 and len(self._pyramid) < 8:
             self._pyramid.append(cv2.pyrDown(self._pyramid[-1]))
 

@@ -202,8 +202,8 @@ def _blobs(
     amp = rng.uniform(0.4, 1.0, count).astype(np.float32)
     np.add.at(img, (r, c), amp)
     s = max(sigma_m / cell_m, 0.5)
-    img = cv2.GaussianBlur(img, (0, 0), s, borderType=cv2.BORDER_REFLECT)
-    return img * np.float32(2.0 * np.pi * s * s)
+    blurred = cv2.GaussianBlur(img, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+    return blurred * np.float32(2.0 * np.pi * s * s)
 
 
 def _rocks(
