@@ -262,6 +262,9 @@ class ReplayOptions:
     """ROS topics to replay; empty = every Image / CompressedImage topic of the bag."""
     wait_subscribers_s: float = 5.0
     """Before the first message, wait up to this long for a Zenoh subscriber of each replayed key."""
+    max_gap_s: float = 2.0
+    """A jump of the pacing time larger than this (either way: a driver restart, a bogus stamp) is not
+    waited for: the schedule restarts at that message (counted in ``time_jumps``)."""
 
 
 @dataclass
@@ -278,6 +281,8 @@ class ReplayResult:
     """Wall time from the first publication to the last."""
     late_s_max: float = 0.0
     """Largest lateness of a publication behind its schedule (a slow machine shows here)."""
+    time_jumps: int = 0
+    """Times the pacing clock jumped by more than ``max_gap_s`` and the schedule was restarted."""
 
     def count_bad(self, reason: str) -> None:
         self.bad[reason] = self.bad.get(reason, 0) + 1
@@ -289,6 +294,7 @@ class ReplayResult:
             "skipped_topics": dict(self.skipped_topics),
             "duration_s": round(self.duration_s, 3),
             "late_s_max": round(self.late_s_max, 4),
+            "time_jumps": self.time_jumps,
         }
 
 
@@ -407,6 +413,14 @@ class BagReplayer:
                 log.debug("replay %s: skipped: %s", conn.topic, exc)
                 continue
             t_msg_us = frame.stamp_us if opts.clock == "header" else log_ns // 1000
+            if last_msg_us is not None and abs(t_msg_us - last_msg_us) > opts.max_gap_s * 1e6:
+                res.time_jumps += 1
+                log.warning(
+                    "replay %s: time jumps %.1f s: schedule restarted",
+                    conn.topic,
+                    (t_msg_us - last_msg_us) * 1e-6,
+                )
+                t0_msg_us = last_msg_us = None
             if t0_msg_us is None:
                 t0_msg_us, t0_wall_us = t_msg_us, self.clock_us()
             # out-of-order times (reordered capture stamps) go out at once, never wait backwards
@@ -595,6 +609,7 @@ def cmd_replay(a: Any) -> int:
         print(f"  {topic:28s} not replayed ({msgtype})")
     if res.bad:
         print(f"  skipped bad messages: {', '.join(f'{k} {v}' for k, v in sorted(res.bad.items()))}")
-    print(f"  {res.duration_s:.2f} s, at most {res.late_s_max * 1000:.1f} ms behind schedule")
+    jumps = f", {res.time_jumps} time jumps not waited for" if res.time_jumps else ""
+    print(f"  {res.duration_s:.2f} s, at most {res.late_s_max * 1000:.1f} ms behind schedule{jumps}")
     print(json.dumps({"replayed": res.as_dict()}), flush=True)
     return 0

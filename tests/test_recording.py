@@ -250,6 +250,22 @@ def test_bad_messages_in_a_bag_are_counted_and_skipped(sessions, tmp_path, stora
     assert [f.image.tobytes() for _, f in arrived] == [pattern(k).tobytes() for k in range(6)]
 
 
+def test_stamp_jumps_are_not_waited_for(sessions, tmp_path) -> None:
+    """A bogus stamp a day ahead, then one a day behind: the replay restarts its schedule, never waits."""
+    a, b = sessions
+    t0 = now_us() - 60_000_000
+    stamps = [t0, t0 + 50_000, t0 + 86_400_000_000, t0 + 100_000, t0 - 86_400_000_000, t0 + 150_000]
+    path = tmp_path / "bag"
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection("/uav/camera/nadir", IMAGE_MSGTYPE, typestore=TS)
+        for k, stamp in enumerate(stamps):
+            w.write(conn, (t0 + k * 50_000) * 1000, encode_image(pattern(k), stamp))
+    t = time.monotonic()
+    res = BagReplayer(a, path, ReplayOptions(wait_subscribers_s=0.0)).run()
+    assert time.monotonic() - t < 3.0
+    assert res.published == {"/uav/camera/nadir": 6} and res.time_jumps == 4
+
+
 def test_damaged_mcap_chunk_stops_the_replay_cleanly(sessions, tmp_path) -> None:
     """A broken record inside the bag: what comes before it is replayed, the rest is counted as lost."""
     a, b = sessions
