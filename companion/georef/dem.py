@@ -70,14 +70,25 @@ class Dem:
         r = np.atleast_1d(r).astype(np.float32)
         c = np.atleast_1d(c).astype(np.float32)
         shape = r.shape
-        out = cv2.remap(
-            self.height_m.astype(np.float32, copy=False),
-            c.reshape(1, -1),
-            r.reshape(1, -1),
-            interpolation=cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=float("nan"),
-        ).reshape(shape)
+        # cv2.remap takes maps of at most 32767 columns: lay the points out in rows of 1024
+        n = r.size
+        width = 1024
+        rows_needed = max(-(-n // width), 1)
+        pad = rows_needed * width - n
+        rm = np.concatenate([r.ravel(), np.zeros(pad, np.float32)]).reshape(rows_needed, width)
+        cm = np.concatenate([c.ravel(), np.zeros(pad, np.float32)]).reshape(rows_needed, width)
+        out = (
+            cv2.remap(
+                self.height_m.astype(np.float32, copy=False),
+                cm,
+                rm,
+                interpolation=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=float("nan"),
+            )
+            .ravel()[:n]
+            .reshape(shape)
+        )
         rows, cols = self.shape
         outside = (r < 0) | (c < 0) | (r > rows - 1) | (c > cols - 1)
         out[outside] = np.nan
