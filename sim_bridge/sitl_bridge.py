@@ -159,6 +159,8 @@ class BridgeCounters:
     received: dict[str, int] = field(default_factory=dict)
     """MAVLink messages received from the followed autopilot, by type."""
     reordered: int = 0
+    non_finite: int = 0
+    """ATTITUDE / LOCAL_POSITION_NED with NaN or inf (ignored)."""
     sitl_restarts: int = 0
     interval_requests: int = 0
     ranges_sent: int = 0
@@ -393,26 +395,22 @@ class SitlCameraBridge:
         now_us = self.clock_us()
         if name == "ATTITUDE":
             boot_ms = int(msg.time_boot_ms)
-            if self._fresh(boot_ms, 0):
-                att = (
-                    boot_ms,
-                    now_us,
-                    np.array([msg.roll, msg.pitch, msg.yaw], float),
-                    np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], float),
-                )
+            rpy = np.array([msg.roll, msg.pitch, msg.yaw], float)
+            omega = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], float)
+            if not (np.all(np.isfinite(rpy)) and np.all(np.isfinite(omega))):
+                self.counters.non_finite += 1
+            elif self._fresh(boot_ms, 0):
                 with self._lock:
-                    self._att = att
+                    self._att = (boot_ms, now_us, rpy, omega)
         elif name == "LOCAL_POSITION_NED":
             boot_ms = int(msg.time_boot_ms)
-            if self._fresh(boot_ms, 1):
-                pos = (
-                    boot_ms,
-                    now_us,
-                    np.array([msg.x, msg.y, msg.z], float),
-                    np.array([msg.vx, msg.vy, msg.vz], float),
-                )
+            p = np.array([msg.x, msg.y, msg.z], float)
+            v = np.array([msg.vx, msg.vy, msg.vz], float)
+            if not (np.all(np.isfinite(p)) and np.all(np.isfinite(v))):
+                self.counters.non_finite += 1
+            elif self._fresh(boot_ms, 1):
                 with self._lock:
-                    self._pos = pos
+                    self._pos = (boot_ms, now_us, p, v)
         elif name == "GPS_GLOBAL_ORIGIN":
             self.origin_lla = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
 
@@ -510,6 +508,7 @@ class SitlCameraBridge:
             "off_scene": c.off_scene,
             "received": dict(c.received),
             "reordered": c.reordered,
+            "non_finite": c.non_finite,
             "sitl_restarts": c.sitl_restarts,
             "ranges_sent": c.ranges_sent,
             "render_ms_mean": round(1000 * c.render_s_total / c.frames, 1) if c.frames else None,

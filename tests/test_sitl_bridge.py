@@ -231,3 +231,67 @@ def test_cli_sitl_camera(tmp_path, capsys) -> None:
     assert (
         cli.main(["sitl-camera", "--mavlink", "bogus:1", "--scene-size", "50", "--out", str(tmp_path)]) == 2
     )
+
+
+def test_bad_and_reordered_telemetry_and_a_sitl_restart() -> None:
+    """Crafted MAVLink on the wire: NaN samples are ignored, older samples dropped, a clock reset clears."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    from companion.io.mavlink import MavCodec
+    from companion.io.transport import open_transport
+
+    port = free_port(socket.SOCK_STREAM)
+    server = open_transport(f"tcpin:127.0.0.1:{port}")
+    codec = MavCodec(1, 1)
+    mav = codec.mav
+    session = open_session("peer", listen=[f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"])
+    bridge = SitlCameraBridge(
+        session,
+        SitlCameraOptions(mavlink=f"tcp:127.0.0.1:{port}", rangefinder_hz=0.0),
+        scene=make_scene("08", seed=1, size_m=60.0, cell_m=0.5),
+    )
+
+    def send(*msgs: Any) -> None:
+        for m in msgs:
+            server.write(codec.encode(m))
+        time.sleep(0.1)
+
+    try:
+        bridge.start()
+        assert wait_for(lambda: server.read(0.01) is not None and server.stats.connected, 5.0)
+        hb = mav.heartbeat_encode(
+            mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_PX4, 0, 0, mavlink2.MAV_STATE_ACTIVE
+        )
+        send(
+            hb,
+            mav.attitude_encode(5000, 0.0, 0.0, 1.0, 0, 0, 0),
+            mav.local_position_ned_encode(5000, 1, 2, -30, 0, 0, 0),
+        )
+        assert wait_for(lambda: bridge.pose() is not None, 2.0) and bridge.autopilot_type == "PX4"
+        nan = float("nan")
+        send(
+            mav.attitude_encode(5100, nan, 0.0, 1.0, 0, 0, 0),  # NaN: ignored
+            mav.local_position_ned_encode(5100, 1, 2, float("inf"), 0, 0, 0),  # inf: ignored
+            mav.attitude_encode(4900, 0.0, 0.0, 2.0, 0, 0, 0),  # older than the last: dropped
+        )
+        pose = bridge.pose()
+        assert (
+            pose is not None
+            and pose.rpy_rad[2] == pytest.approx(1.0)
+            and pose.p_ned_m[2] == pytest.approx(-30)
+        )
+        assert bridge.counters.non_finite == 2 and bridge.counters.reordered == 1
+        send(mav.attitude_encode(10, 0.0, 0.0, 3.0, 0, 0, 0))  # the clock restarted: old pose forgotten
+        assert bridge.counters.sitl_restarts == 1
+        assert bridge.pose() is None  # no position since the restart yet
+        send(mav.local_position_ned_encode(20, 0, 0, -5, 0, 0, 0))
+        pose = bridge.pose()
+        assert (
+            pose is not None
+            and pose.rpy_rad[2] == pytest.approx(3.0)
+            and pose.p_ned_m[2] == pytest.approx(-5)
+        )
+    finally:
+        bridge.close()
+        server.close()
+        session.close()
