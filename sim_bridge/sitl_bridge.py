@@ -6,7 +6,9 @@ Three processes on one host: the SITL (flies the vehicle, with GPS), this bridge
 separate MAVLink connection (``companion.io.transport`` + ``MavCodec``): it introduces itself as a
 camera (MAV_COMP_ID_CAMERA), asks the autopilot for ATTITUDE and LOCAL_POSITION_NED at
 ``stream_rate_hz`` (MAV_CMD_SET_MESSAGE_INTERVAL, honoured per link by ArduPilot and PX4) and keeps the
-latest of each. With GPS the SITL's local NED is the truth the camera renders from.
+latest of each. With GPS the SITL's local NED is the truth the camera renders from. It also sends the
+autopilot a downward DISTANCE_SENSOR measured to the scene (the SITL's own rangefinder sees its flat
+ground), which the autopilot relays to the companion when RNGFND1_TYPE = 10 (MAVLink).
 
 Frames of reference. The SITL's local NED (origin = its EKF origin, at the take-off point in practice,
 z = 0 on the take-off ground) is laid onto the scene: the SITL origin goes to scene (N, E) =
