@@ -152,7 +152,9 @@ class Daemon:
             self.estimator.close()
         except Exception:  # noqa: BLE001 - shutting down: log, never raise
             log.exception("estimator close failed")
-        log.info("companion stopped: %s", self.status_line())
+        st = self.status()
+        log.info("companion stopped: %s", self.status_line(st))
+        log.info("totals: sent %d, not sent %s, estimator %s", st["sent"], st["not_sent"], st["estimator"])
 
     @property
     def stopping(self) -> bool:
@@ -233,6 +235,11 @@ class Daemon:
             "position_ned_m": None if est is None else [round(float(v), 2) for v in est.p_body_in_world_m],
             "frames": self.frame_counters(),
             "link": self.link.status(),
+            "estimator": {
+                k: dict(v)
+                for k in ("counters", "no_fix_reasons")
+                if isinstance(v := getattr(self.estimator, k, None), dict)
+            },
         }
 
     def status_line(self, st: dict[str, Any] | None = None) -> str:

@@ -101,12 +101,15 @@ class SimProcess:
             self.proc.kill()
 
 
-def companion_config(dem: Path, ground_m: float, zenoh_connect: list[str], mavlink: str):
+def companion_config(
+    dem: Path, ground_m: float, zenoh_connect: list[str], mavlink: str, zenoh_listen: list[str]
+):
     cfg = SimConfig(duration_s=60.0)
     s0 = make_trajectory(cfg, ground_m).state_at(0.0)
     yaw0 = float(np.degrees(np.arctan2(s0.R_world_body[1, 0], s0.R_world_body[0, 0])))
     sets = {
         "zenoh.connect": zenoh_connect,
+        "zenoh.listen": zenoh_listen,
         "mavlink.connection": mavlink,
         "dem.path": str(dem),
         "estimator.initial_position_ned_m": [float(v) for v in s0.p_world],
@@ -179,23 +182,22 @@ def bad_payloads(now_us: int) -> list[tuple[str, bytes]]:
 
 def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(tmp_path: Path, dem_path) -> None:
     dem, ground = dem_path
-    zsim, zbad, mport = (
-        free_port(socket.SOCK_STREAM),
-        free_port(socket.SOCK_STREAM),
-        free_port(socket.SOCK_DGRAM),
-    )
+    zsim, zbad, zcomp = (free_port(socket.SOCK_STREAM) for _ in range(3))
+    mport = free_port(socket.SOCK_DGRAM)
     sim = SimProcess(tmp_path, f"udpin:127.0.0.1:{mport}", zsim, duration_s=20.0)
     bad_session = open_session("peer", [], [f"tcp/127.0.0.1:{zbad}"], False)
     bad_pub = bad_session.declare_publisher("uav/camera/nadir")
     endpoints = [f"tcp/127.0.0.1:{zsim}", f"tcp/127.0.0.1:{zbad}"]
-    status = StatusListener(endpoints)
     stop = threading.Event()
-    cfg = companion_config(dem, ground, endpoints, f"udpout:127.0.0.1:{mport}")
+    cfg = companion_config(dem, ground, endpoints, f"udpout:127.0.0.1:{mport}", [f"tcp/127.0.0.1:{zcomp}"])
     daemon = threading.Thread(target=cmd_run, args=(cfg, stop), daemon=True)
+    status: StatusListener | None = None
     try:
         assert sim.ready.wait(60)
         daemon.start()
-        time.sleep(8.0)  # mid-flight: throw every kind of bad frame at the daemon
+        time.sleep(2.0)
+        status = StatusListener([f"tcp/127.0.0.1:{zcomp}"])  # an operator's laptop connects to the companion
+        time.sleep(6.0)  # mid-flight: throw every kind of bad frame at the daemon
         for _, payload in bad_payloads(time.time_ns() // 1000):
             bad_pub.put(payload)
             time.sleep(0.05)
@@ -207,8 +209,9 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(tmp_pat
         sim.kill()
         bad_pub.undeclare()
         bad_session.close()
-        st = status.last
-        status.close()
+        st = status.last if status is not None else None
+        if status is not None:
+            status.close()
     assert not daemon.is_alive(), "daemon did not stop on request"
     published, accepted = summary["frames_published"], summary["estimates_accepted"]
     assert published >= 0.8 * 20 * RATE_HZ, summary
@@ -270,18 +273,26 @@ class PtyBridge:
 
 def test_serial_link_cut_restored_and_autopilot_reboot(tmp_path: Path, dem_path) -> None:
     dem, ground = dem_path
-    zsim, mport = free_port(socket.SOCK_STREAM), free_port(socket.SOCK_DGRAM)
+    zsim, zcomp, mport = (
+        free_port(socket.SOCK_STREAM),
+        free_port(socket.SOCK_STREAM),
+        free_port(socket.SOCK_DGRAM),
+    )
     sim = SimProcess(tmp_path, f"udpin:127.0.0.1:{mport}", zsim, duration_s=36.0)
     assert sim.ready.wait(60)
     bridge = PtyBridge(mport)
     stop = threading.Event()
-    cfg = companion_config(dem, ground, [f"tcp/127.0.0.1:{zsim}"], f"serial:{bridge.dev}:115200")
+    cfg = companion_config(
+        dem, ground, [f"tcp/127.0.0.1:{zsim}"], f"serial:{bridge.dev}:115200", [f"tcp/127.0.0.1:{zcomp}"]
+    )
     daemon = threading.Thread(target=cmd_run, args=(cfg, stop), daemon=True)
-    status = StatusListener([f"tcp/127.0.0.1:{zsim}"])
     states: list[str] = []
+    status: StatusListener | None = None
     try:
         daemon.start()
-        time.sleep(14.0)
+        time.sleep(2.0)
+        status = StatusListener([f"tcp/127.0.0.1:{zcomp}"])
+        time.sleep(12.0)
         bridge.connected.clear()  # pull the cable for 5 s
         time.sleep(5.0)
         states.append(status.last["link"]["state"] if status.last else "?")
@@ -294,8 +305,9 @@ def test_serial_link_cut_restored_and_autopilot_reboot(tmp_path: Path, dem_path)
         daemon.join(15)
         sim.kill()
         bridge.close()
-        st = status.last
-        status.close()
+        st = status.last if status is not None else None
+        if status is not None:
+            status.close()
     assert states == ["down"], f"link state while the cable was out: {states}"
     recs_t = np.loadtxt(tmp_path / "estimate.tum", ndmin=2)[:, 0]
     t_cut = 14.0 - 4.0  # flight time when the cable was pulled (after the 4 s start delay), roughly
