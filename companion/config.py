@@ -70,7 +70,9 @@ class MavlinkConfig(_Strict):
     sysid: Annotated[int, Field(ge=1, le=255)] = 1
     compid: Annotated[int, Field(ge=1, le=255)] = 197
     message: Literal["vision_position_estimate", "odometry"] = "vision_position_estimate"
-    max_rate_hz: Annotated[float, Field(gt=0, le=50)] = 30.0
+    max_rate_hz: Annotated[float, Field(gt=0, le=50)] = (
+        30.0  # ArduPilot: <= 45 (EKF3 drops samples < 20 ms apart)
+    )
     signing_key_hex: str = ""
     set_origin_if_missing: bool = True
     link_timeout_s: Annotated[float, Field(gt=0)] = 3.0
