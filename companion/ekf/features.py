@@ -1,0 +1,125 @@
+"""SIFT detection and prediction-guided matching (paper 2 section 3.2). No cross-modal matching:
+each camera's landmarks are matched only against that camera's keypoints.
+
+SIFT is OpenCV's ``cv2.SIFT_create`` with the settings in ``EkfOptions`` (sift_*): 400 keypoints per
+image ranked by contrast, 3 layers per octave (Lowe), contrast threshold 0.02 (half OpenCV's 0.04,
+because icy scenes are low in contrast), edge threshold 10 and sigma 1.6 (OpenCV / Lowe defaults).
+Visible frames are used as they come (8-bit grey; the paper applies no other pre-processing).
+Thermal frames (uint16 counts) are stretched per frame to 8 bit between the 1st and 99th percentile
+(``to_uint8``): robust to a few dead or hot pixels and independent of the camera's absolute scale.
+
+Matching is active search (Davison; Civera et al. 2008): each landmark's predicted pixel and 2x2
+innovation covariance S define a Mahalanobis gate; among the keypoints inside it, the nearest
+descriptor wins if it passes an absolute distance threshold and Lowe's ratio test against the
+second-nearest gated candidate; a keypoint claimed by two landmarks goes to the closer descriptor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from companion.ekf.options import EkfOptions
+
+
+@dataclass(frozen=True)
+class Detections:
+    """Keypoints of one image. uv: (N,2) float64 pixels (full-resolution image); desc: (N,128) float32;
+    size_px: (N,) SIFT keypoint diameter in full-resolution pixels (None when unknown)."""
+
+    uv: np.ndarray
+    desc: np.ndarray
+    size_px: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+
+def to_uint8(image: np.ndarray, low_percentile: float = 1.0, high_percentile: float = 99.0) -> np.ndarray:
+    """8-bit version of an image for SIFT: uint8 passes through, anything else is percentile-stretched."""
+    if image.dtype == np.uint8:
+        return image
+    img = image.astype(np.float32)
+    lo, hi = np.percentile(img, [low_percentile, high_percentile])
+    if not np.isfinite(lo) or not np.isfinite(hi) or hi <= lo:
+        return np.zeros(image.shape, np.uint8)
+    out = (img - lo) * (255.0 / (hi - lo))
+    return np.clip(out, 0.0, 255.0).astype(np.uint8)
+
+
+class SiftDetector:
+    """One SIFT instance per camera (OpenCV detectors keep buffers; do not share between threads)."""
+
+    def __init__(self, options: EkfOptions) -> None:
+        o = options
+        self._sift = cv2.SIFT_create(
+            nfeatures=o.sift_nfeatures,
+            nOctaveLayers=o.sift_octave_layers,
+            contrastThreshold=o.sift_contrast_threshold,
+            edgeThreshold=o.sift_edge_threshold,
+            sigma=o.sift_sigma,
+        )
+        self._scale = float(o.detect_scale)
+        self._pct = (o.thermal_low_percentile, o.thermal_high_percentile)
+
+    def detect(self, image: np.ndarray) -> Detections:
+        """SIFT keypoints and descriptors of a (H,W) uint8 or uint16 image."""
+        img = to_uint8(image, *self._pct)
+        if self._scale != 1.0:
+            img = cv2.resize(img, None, fx=self._scale, fy=self._scale, interpolation=cv2.INTER_AREA)
+        kps, desc = self._sift.detectAndCompute(img, None)
+        if desc is None or len(kps) == 0:
+            return Detections(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0))
+        uv = np.array([k.pt for k in kps], dtype=np.float64)
+        size = np.array([k.size for k in kps], dtype=np.float64)
+        if self._scale != 1.0:
+            # resized pixel centres: u_full = (u_small + 0.5) / s - 0.5
+            uv = (uv + 0.5) / self._scale - 0.5
+            size = size / self._scale
+        return Detections(uv, desc.astype(np.float32), size)
+
+
+def match_predicted(
+    pred_uv: np.ndarray,
+    S: np.ndarray,
+    lm_desc: np.ndarray,
+    det: Detections,
+    gate_chi2: float,
+    max_descriptor_distance: float,
+    ratio: float,
+) -> np.ndarray:
+    """Active-search matching. pred_uv (L,2), S (L,2,2), lm_desc (L,128) -> (L,) keypoint index or -1."""
+    L = len(pred_uv)
+    out = np.full(L, -1, dtype=int)
+    if L == 0 or len(det) == 0:
+        return out
+    Sinv = np.linalg.inv(S)
+    diff = det.uv[None, :, :] - pred_uv[:, None, :]  # (L,K,2)
+    dx, dy = diff[..., 0], diff[..., 1]
+    maha = (
+        Sinv[:, 0, 0, None] * dx * dx
+        + (Sinv[:, 0, 1] + Sinv[:, 1, 0])[:, None] * dx * dy
+        + Sinv[:, 1, 1, None] * dy * dy
+    )
+    gated = maha <= gate_chi2
+    if not gated.any():
+        return out
+    a2 = np.sum(lm_desc.astype(np.float64) ** 2, axis=1)[:, None]
+    b2 = np.sum(det.desc.astype(np.float64) ** 2, axis=1)[None, :]
+    dd = np.sqrt(np.maximum(a2 + b2 - 2.0 * lm_desc.astype(np.float64) @ det.desc.T.astype(np.float64), 0.0))
+    dd = np.where(gated, dd, np.inf)
+    order = np.argsort(dd, axis=1)
+    best = order[:, 0]
+    d1 = dd[np.arange(L), best]
+    d2 = dd[np.arange(L), order[:, 1]] if dd.shape[1] > 1 else np.full(L, np.inf)
+    ok = (d1 <= max_descriptor_distance) & (d1 < ratio * d2)
+    # one keypoint, one landmark: the smallest descriptor distance keeps it
+    for li in np.argsort(np.where(ok, d1, np.inf)):
+        if not ok[li]:
+            break
+        if best[li] in out:
+            continue
+        out[li] = best[li]
+    return out

@@ -1,0 +1,89 @@
+"""Options of the visible / thermal / dual inverse-depth EKF-SLAM (paper 2), one frozen dataclass.
+
+Every default is documented beside it with its unit. The daemon builds this from the TOML config;
+the benchmark and the tests build it directly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+MODES = ("visible", "thermal", "dual")
+"""Sensing configurations of paper 2: one camera, the other, or both landmarks in one map (eq. 7)."""
+
+SAMPLING_METHODS = ("kde", "uniform")
+"""New-landmark sampling: spatial diversity D(l) = -log f(l) (eq. 8) or uniform (Brunner et al.)."""
+
+
+def cameras_for_mode(mode: str) -> tuple[str, ...]:
+    """Camera names used by a mode: ("visible",), ("thermal",) or ("visible", "thermal")."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    return ("visible", "thermal") if mode == "dual" else (mode,)
+
+
+@dataclass(frozen=True)
+class EkfOptions:
+    """Filter, tracking and sampling settings.
+
+    IMU densities default to the simulated IMU (``sim_bridge.trajectory.ImuNoise``: an ICM-42688-class
+    MEMS part); set them from the real IMU's datasheet on a vehicle.
+    """
+
+    mode: str = "dual"  # "visible" | "thermal" | "dual"
+    max_landmarks_per_camera: int = 32  # N of eqs. 6-7 (paper: 32 per camera, 64 in the dual map)
+    sampling: str = "kde"  # "kde" (eq. 8, spatial diversity) | "uniform" (Brunner et al. 2011)
+    # --- IMU propagation (eqs. 1-4) ---
+    accel_noise_density: float = 2.0e-3  # m/s^2/sqrt(Hz), white noise on the specific force
+    gyro_noise_density: float = 1.7e-4  # rad/s/sqrt(Hz), white noise on the angular rate
+    accel_bias_walk: float = 1.0e-4  # m/s^3/sqrt(Hz), accelerometer bias random walk
+    gyro_bias_walk: float = 2.0e-6  # rad/s^2/sqrt(Hz), gyro bias random walk
+    estimate_imu_bias: bool = True  # add accel/gyro biases to the state (the paper's state has none)
+    accel_bias_sigma0: float = 0.03  # m/s^2, prior sigma of the accelerometer bias
+    gyro_bias_sigma0: float = 2.0e-3  # rad/s, prior sigma of the gyro bias
+    # --- initial state uncertainty ---
+    initial_position_sigma_m: float = 0.05  # m, per axis
+    initial_velocity_sigma_mps: float = 0.1  # m/s, per axis
+    initial_tilt_sigma_rad: float = 0.01  # rad, roll and pitch
+    initial_yaw_sigma_rad: float = 0.02  # rad
+    # --- visual measurements ---
+    pixel_sigma_px: float = 1.0  # px, SIFT keypoint position noise (per axis)
+    first_estimate_jacobians: bool = True  # FEJ on landmarks (Huang et al. 2008), see ``ekf.filter``
+    gate_chi2: float = 9.21  # Mahalanobis gate on the 2-D innovation (chi-square, 2 dof, 99 %)
+    max_descriptor_distance: float = 250.0  # SIFT L2 distance (OpenCV descriptors, norm ~512)
+    descriptor_ratio: float = 0.85  # Lowe ratio test between the best and second-best gated candidates
+    max_consecutive_misses: int = 2  # frames a landmark may go unmatched inside the image before deletion
+    image_margin_px: float = 8.0  # landmarks predicted closer than this to the border are deleted
+    min_new_separation_px: float = 12.0  # new landmarks keep this distance from tracked ones
+    # --- landmark initialisation (Civera inverse depth, eq. 5) ---
+    init_rho_rel_sigma: float = 0.35  # sigma(rho)/rho of the altimeter-based depth prior (relief)
+    init_rho_no_altimeter: float = 0.01  # 1/m, prior inverse depth before any altimeter reading
+    init_rho_sigma_no_altimeter: float = 0.01  # 1/m, its sigma (covers 50 m .. infinity at 2 sigma)
+    # --- altimeter (range along body down to the ground) ---
+    altimeter_sigma_m: float = 0.1  # m, sensor noise
+    facet_rel_sigma: float = 0.02  # sigma of the landmark-facet model error, as a fraction of the range
+    altimeter_gate_chi2: float = 10.83  # Mahalanobis gate (chi-square, 1 dof, 99.9 %)
+    # --- diversity sampling (eq. 8) ---
+    kde_min_bandwidth_px: float = 16.0  # px, floor of the Scott's-rule kernel width
+    kde_default_bandwidth_px: float = 64.0  # px, kernel width when fewer than 2 landmarks are tracked
+    # --- SIFT (cv2.SIFT_create) ---
+    sift_nfeatures: int = 400  # keypoints kept per image (best by contrast)
+    sift_octave_layers: int = 3  # Lowe's value
+    sift_contrast_threshold: float = 0.02  # lower than OpenCV's 0.04: icy scenes have little contrast
+    sift_edge_threshold: float = 10.0  # OpenCV / Lowe default
+    sift_sigma: float = 1.6  # OpenCV / Lowe default
+    detect_scale: float = 1.0  # detect on the image resized by this factor (speed); pixels mapped back
+    thermal_low_percentile: float = 1.0  # uint16 thermal -> 8 bit: this percentile maps to 0
+    thermal_high_percentile: float = 99.0  # ... and this one to 255 (per frame, robust to hot pixels)
+    # --- time handling and health ---
+    imu_max_lag_s: float = 0.25  # IMU samples are buffered this long so late frames find them
+    lost_after_frames: int = 5  # consecutive frames with no visual match before the status is LOST
+    lost_position_sigma_m: float = 50.0  # m, largest position sigma still reported OK
+    seed: int = 0  # landmark sampling RNG
+
+    def __post_init__(self) -> None:
+        cameras_for_mode(self.mode)
+        if self.sampling not in SAMPLING_METHODS:
+            raise ValueError(f"sampling must be one of {SAMPLING_METHODS}, got {self.sampling!r}")
+        if self.max_landmarks_per_camera < 1:
+            raise ValueError("max_landmarks_per_camera must be >= 1")

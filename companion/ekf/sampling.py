@@ -1,0 +1,81 @@
+"""New-landmark sampling (paper 2 section 3.3): spatial diversity D(l) = -log f(l) (eq. 8), or uniform.
+
+f is a kernel density estimate, in image pixels, of where the tracked landmarks are. Candidates are
+drawn without replacement with probability proportional to D(l); each pick joins the tracked set
+before the next draw, so the new landmarks of one frame are spread out among themselves as well.
+
+The KDE is a small vectorised isotropic Gaussian written here instead of ``scipy.stats.gaussian_kde``:
+gaussian_kde fails with fewer than 3 points or collinear points (singular data covariance), which is
+exactly the state of the map after a loss of track, and its kernel takes the shape of the tracked
+set's covariance (elongated along a line of landmarks), whereas spatial diversity wants distance
+in the image to count the same in every direction. The width follows Scott's rule, n^(-1/6) sigma,
+with sigma the pooled per-axis standard deviation, and a floor. Log densities use log-sum-exp so
+far-away candidates get a large finite D instead of -log 0.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import logsumexp
+
+
+def scott_bandwidth(points_uv: np.ndarray, min_px: float, default_px: float) -> float:
+    """Isotropic kernel width (px) for (M,2) points: Scott's rule with pooled sigma, floored at min_px."""
+    m = len(points_uv)
+    if m < 2:
+        return float(default_px)
+    sigma = float(np.sqrt(np.mean(np.var(points_uv, axis=0, ddof=1))))
+    return max(float(min_px), sigma * m ** (-1.0 / 6.0))
+
+
+def kde_log_density(query_uv: np.ndarray, points_uv: np.ndarray, bandwidth_px: float) -> np.ndarray:
+    """(N,) log f at (N,2) query pixels of an isotropic Gaussian KDE over (M,2) points (M >= 1)."""
+    d2 = np.sum((query_uv[:, None, :] - points_uv[None, :, :]) ** 2, axis=2)
+    h2 = bandwidth_px * bandwidth_px
+    return logsumexp(-0.5 * d2 / h2, axis=1) - np.log(len(points_uv) * 2.0 * np.pi * h2)
+
+
+def diversity(query_uv: np.ndarray, points_uv: np.ndarray, bandwidth_px: float) -> np.ndarray:
+    """(N,) eq. 8: D(l) = -log f(l). With no tracked points every candidate scores the same (0)."""
+    if len(points_uv) == 0:
+        return np.zeros(len(query_uv))
+    return -kde_log_density(query_uv, points_uv, bandwidth_px)
+
+
+def sample_new_landmarks(
+    candidates_uv: np.ndarray,
+    tracked_uv: np.ndarray,
+    k: int,
+    method: str,
+    rng: np.random.Generator,
+    min_bandwidth_px: float = 16.0,
+    default_bandwidth_px: float = 64.0,
+) -> np.ndarray:
+    """Indices (<= k,) into (N,2) ``candidates_uv`` of the new landmarks, given (M,2) tracked pixels.
+
+    method "kde": weights D(l) (eq. 8), recomputed after each pick; "uniform": equal weights.
+    """
+    n = len(candidates_uv)
+    k = min(k, n)
+    if k <= 0:
+        return np.zeros(0, dtype=int)
+    if method == "uniform":
+        return rng.choice(n, size=k, replace=False)
+    if method != "kde":
+        raise ValueError(f"unknown sampling method {method!r}")
+    chosen: list[int] = []
+    available = np.ones(n, bool)
+    tracked = np.asarray(tracked_uv, float).reshape(-1, 2)
+    for _ in range(k):
+        h = scott_bandwidth(tracked, min_bandwidth_px, default_bandwidth_px)
+        idx = np.flatnonzero(available)
+        D = diversity(candidates_uv[idx], tracked, h)
+        # D is positive in practice (f <= 1/(2 pi h^2) << 1 per px^2); the floor keeps a valid distribution
+        w = np.maximum(D, 1e-9)
+        if not np.any(D > 0):
+            w = np.ones_like(D)
+        j = int(rng.choice(idx, p=w / w.sum()))
+        chosen.append(j)
+        available[j] = False
+        tracked = np.vstack([tracked, candidates_uv[j]])
+    return np.asarray(chosen, dtype=int)

@@ -1,0 +1,406 @@
+"""Visible / thermal / dual inverse-depth EKF-SLAM (paper 2): IMU propagation, altimeter updates,
+per-camera landmark tracking (eqs. 6-7), landmark deletion and diversity sampling (eq. 8).
+
+Pure logic on numpy arrays and timestamps (integer microseconds); no I/O, no clock. The daemon's
+estimator (``companion.estimators.vis_thermal_ekf``) and the offline runner both drive this class.
+
+Time handling. IMU samples are zero-order held: a sample stamped t_k is used from t_k until the next
+one. Samples are queued and only integrated once they are ``imu_max_lag_s`` older than the newest
+sample, or when a frame / altimeter reading asks for the state at its stamp; so a frame that arrives
+after the IMU samples that follow it is still processed at its own capture time, with the IMU up to
+that time. A frame older than the filter (older than the lag) is processed at the filter's time and
+counted in ``stale_frames``; an IMU sample older than the filter is dropped and counted.
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.ekf import landmarks as lmk
+from companion.ekf.altimeter import facet_range, select_facet
+from companion.ekf.features import Detections, match_predicted
+from companion.ekf.filter import VEHICLE_DIM, InverseDepthEkf
+from companion.ekf.options import EkfOptions, cameras_for_mode
+from companion.ekf.sampling import sample_new_landmarks
+from companion.ekf.so3 import euler_rate_matrix, rot_from_quat
+from companion.geometry import rpy_from_rot
+
+
+@dataclass(frozen=True)
+class SlamPose:
+    """Filter output at one frame time.
+
+    p_world: (3,) NED m; rpy_rad: (3,); covariance: (6,6) over (x, y, z, roll, pitch, yaw);
+    matched: visual matches used per camera; n_landmarks per camera; tracking: at least one match.
+    """
+
+    stamp_us: int
+    p_world: np.ndarray
+    v_world: np.ndarray
+    rpy_rad: np.ndarray
+    covariance: np.ndarray
+    matched: dict[str, int]
+    n_landmarks: dict[str, int]
+    position_sigma_max_m: float
+    frames_since_match: int
+
+
+@dataclass
+class SlamCounters:
+    """Health counters (monotonic)."""
+
+    frames: int = 0
+    stale_frames: int = 0
+    late_imu: int = 0
+    imu: int = 0
+    altimeter_updates: int = 0
+    altimeter_rejected: int = 0
+    altimeter_no_facet: int = 0
+    landmarks_added: dict[str, int] = field(default_factory=dict)
+    landmarks_deleted: dict[str, int] = field(default_factory=dict)
+    deleted_out_of_view: int = 0
+    deleted_unmatched: int = 0
+    matches: dict[str, int] = field(default_factory=dict)
+
+
+class VisThermalSlam:
+    """One flight's SLAM. ``cameras`` maps camera name to ``landmarks.CameraModel``.
+
+    Call ``add_imu`` / ``add_altimeter`` as samples arrive and ``process_frame`` with each frame set's
+    detections; ``start`` fixes the initial state (position, velocity, attitude quaternion).
+    """
+
+    def __init__(self, options: EkfOptions, cameras: dict[str, lmk.CameraModel], gravity_mps2: float) -> None:
+        self.opts = options
+        self.camera_names = cameras_for_mode(options.mode)
+        missing = [c for c in self.camera_names if c not in cameras]
+        if missing:
+            raise ValueError(f"mode {options.mode!r} needs camera models for {missing}")
+        self.cameras = {c: cameras[c] for c in self.camera_names}
+        self.gravity_mps2 = gravity_mps2
+        self.rng = np.random.default_rng(options.seed)
+        self.ekf: InverseDepthEkf | None = None
+        self.t_us: int | None = None
+        self._queue: list[tuple[int, np.ndarray, np.ndarray]] = []  # sorted by stamp
+        self._hold: tuple[np.ndarray, np.ndarray] | None = None
+        self._hold_stamp = -(2**62)
+        self._desc: dict[int, np.ndarray] = {}
+        self._misses: dict[int, int] = {}
+        self._last_range: tuple[int, float] | None = None
+        self._frames_since_match = 0
+        self.counters = SlamCounters(
+            landmarks_added=dict.fromkeys(self.camera_names, 0),
+            landmarks_deleted=dict.fromkeys(self.camera_names, 0),
+            matches=dict.fromkeys(self.camera_names, 0),
+        )
+
+    # ------------------------------------------------------------------ set-up
+    @property
+    def started(self) -> bool:
+        return self.ekf is not None
+
+    def start(
+        self, stamp_us: int, p_world: np.ndarray, v_world: np.ndarray, q_world_body: np.ndarray
+    ) -> None:
+        """Initialise the filter at ``stamp_us`` with the given state and ``EkfOptions`` priors."""
+        self.ekf = InverseDepthEkf(self.opts, p_world, q_world_body, v_world, self.gravity_mps2)
+        self.t_us = int(stamp_us)
+        older = [s for s in self._queue if s[0] <= stamp_us]
+        if older:
+            self._hold, self._hold_stamp = (older[-1][1], older[-1][2]), older[-1][0]
+        self._queue = [s for s in self._queue if s[0] > stamp_us]
+
+    # ------------------------------------------------------------------ inputs
+    def add_imu(self, stamp_us: int, accel_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
+        """Queue one IMU sample (body FRD specific force m/s^2 and rate rad/s)."""
+        self.counters.imu += 1
+        sample = (int(stamp_us), np.asarray(accel_mps2, float), np.asarray(gyro_rps, float))
+        if self.t_us is not None and stamp_us <= self.t_us:
+            self.counters.late_imu += 1
+            if stamp_us > self._hold_stamp:  # newest information about the current interval
+                self._hold, self._hold_stamp = (sample[1], sample[2]), sample[0]
+            return
+        keys = [s[0] for s in self._queue]
+        self._queue.insert(bisect.bisect_right(keys, sample[0]), sample)
+        if self.ekf is not None:
+            horizon = self._queue[-1][0] - int(self.opts.imu_max_lag_s * 1e6)
+            if self._queue[0][0] < horizon:
+                self._propagate_to(horizon)
+
+    def latest_imu(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Most recent (accel, gyro) seen, for attitude initialisation from gravity."""
+        if self._queue:
+            return self._queue[-1][1], self._queue[-1][2]
+        return self._hold
+
+    def _propagate_to(self, stamp_us: int) -> None:
+        assert self.ekf is not None and self.t_us is not None
+        while self._queue and self._queue[0][0] <= stamp_us:
+            t, acc, gyr = self._queue.pop(0)
+            if t > self.t_us:
+                self._step((t - self.t_us) * 1e-6)
+                self.t_us = t
+            self._hold, self._hold_stamp = (acc, gyr), t
+        if stamp_us > self.t_us:
+            self._step((stamp_us - self.t_us) * 1e-6)
+            self.t_us = stamp_us
+
+    def _step(self, dt: float) -> None:
+        assert self.ekf is not None
+        if self._hold is None:
+            # no IMU yet: assume the vehicle holds its state (hover, no rotation)
+            f = -self.ekf.R_world_body.T @ self.ekf.g_world
+            self.ekf.propagate(f, np.zeros(3), dt)
+        else:
+            self.ekf.propagate(self._hold[0], self._hold[1], dt)
+
+    def add_altimeter(self, stamp_us: int, range_m: float) -> None:
+        """Range (m) along body down; kept for depth priors and used in a facet update (``altimeter``)."""
+        if not np.isfinite(range_m) or range_m <= 0:
+            return
+        self._last_range = (int(stamp_us), float(range_m))
+        if self.ekf is None or self.t_us is None:
+            return
+        if stamp_us > self.t_us:
+            self._propagate_to(int(stamp_us))
+        self._altimeter_update(float(range_m))
+
+    def _altimeter_update(self, range_m: float) -> None:
+        ekf = self.ekf
+        assert ekf is not None
+        if ekf.n_landmarks < 3:
+            self.counters.altimeter_no_facet += 1
+            return
+        valid = ekf.y[:, 5] > 1e-6
+        pts = np.full((ekf.n_landmarks, 3), np.nan)
+        pts[valid] = lmk.to_euclidean(ekf.y[valid])
+        cand = np.flatnonzero(valid)
+        R = ekf.R_world_body
+        sel = select_facet(pts[cand], ekf.r, R)
+        if sel is None:
+            self.counters.altimeter_no_facet += 1
+            return
+        idx = cand[sel]
+        fr = facet_range(pts[idx], ekf.r, R, np.zeros(3))
+        if fr is None:
+            self.counters.altimeter_no_facet += 1
+            return
+        n = ekf.P.shape[0]
+        H = np.zeros((1, n))
+        H[0, :6] = fr.H_pose[0]
+        J = lmk.to_euclidean_jacobian(ekf.y[idx])  # (3,3,6)
+        for k, i in enumerate(idx):
+            H[0, ekf.lm_slice(int(i))] = fr.H_points[k] @ J[k]
+        sigma2 = self.opts.altimeter_sigma_m**2 + (self.opts.facet_rel_sigma * range_m) ** 2
+        Rm = np.array([[sigma2]])
+        S = ekf.innovation_covariance(H, Rm)
+        res = np.array([range_m - fr.range_m])
+        if float(res @ np.linalg.solve(S, res)) > self.opts.altimeter_gate_chi2:
+            self.counters.altimeter_rejected += 1
+            return
+        ekf.update(H, res, Rm)
+        self.counters.altimeter_updates += 1
+
+    # ------------------------------------------------------------------ frames
+    def process_frame(self, stamp_us: int, detections: dict[str, Detections]) -> SlamPose:
+        """One frame (or synchronised pair): propagate to its stamp, match, update, delete, sample."""
+        assert self.ekf is not None and self.t_us is not None, "call start() first"
+        ekf = self.ekf
+        self.counters.frames += 1
+        if stamp_us < self.t_us:
+            self.counters.stale_frames += 1
+        else:
+            self._propagate_to(int(stamp_us))
+        o = self.opts
+        R_wb = ekf.R_world_body
+        matched_count = dict.fromkeys(self.camera_names, 0)
+        # --- predict and match, per camera -------------------------------------------------------
+        rows_H: list[np.ndarray] = []
+        rows_res: list[np.ndarray] = []
+        n = ekf.P.shape[0]
+        keep = np.ones(ekf.n_landmarks, bool)
+        used_kp: dict[str, np.ndarray] = {}
+        tracked_uv: dict[str, list[np.ndarray]] = {c: [] for c in self.camera_names}
+        P = ekf.covariance()
+        for ci, cam_name in enumerate(self.camera_names):
+            cam = self.cameras[cam_name]
+            det = detections.get(cam_name)
+            idx = np.flatnonzero(ekf.lm_cam == ci)
+            used = np.zeros(len(det) if det is not None else 0, bool)
+            used_kp[cam_name] = used
+            if len(idx) == 0:
+                continue
+            proj = lmk.project(ekf.y[idx], ekf.r, R_wb, cam)
+            if o.first_estimate_jacobians:
+                # FEJ: predicted pixels from the current estimate, Jacobians at the first landmark estimate
+                pj = lmk.project(ekf.y_first[idx], ekf.r, R_wb, cam)
+                proj = lmk.Projection(proj.uv, proj.depth, pj.H_pose, pj.H_lm)
+            m = o.image_margin_px
+            inside = (
+                (proj.depth > 0)
+                & (proj.uv[:, 0] >= m)
+                & (proj.uv[:, 0] <= cam.width - 1 - m)
+                & (proj.uv[:, 1] >= m)
+                & (proj.uv[:, 1] <= cam.height - 1 - m)
+                & (ekf.y[idx, 5] > 0)
+            )
+            keep[idx[~inside]] = False
+            self.counters.deleted_out_of_view += int(np.sum(~inside))
+            if det is None:
+                # camera missing from this set: keep the in-view landmarks untouched
+                continue
+            vis = np.flatnonzero(inside)
+            if len(vis) == 0:
+                continue
+            # innovation covariances S_i = H_i P H_i^T + R (2x2 each), vectorised
+            gi = idx[vis]
+            Hs = np.zeros((len(vis), 2, n))
+            Hs[:, :, :6] = proj.H_pose[vis]
+            for k, li in enumerate(gi):
+                Hs[k, :, ekf.lm_slice(int(li))] = proj.H_lm[vis[k]]
+            HP = np.einsum("kin,nm->kim", Hs, P)
+            S = np.einsum("kim,kjm->kij", HP, Hs) + np.eye(2) * o.pixel_sigma_px**2
+            lm_desc = np.stack([self._desc[int(ekf.lm_id[li])] for li in gi])
+            match = match_predicted(
+                proj.uv[vis], S, lm_desc, det, o.gate_chi2, o.max_descriptor_distance, o.descriptor_ratio
+            )
+            for k, li in enumerate(gi):
+                lid = int(ekf.lm_id[li])
+                j = match[k]
+                if j >= 0:
+                    rows_H.append(Hs[k])
+                    rows_res.append(det.uv[j] - proj.uv[vis[k]])
+                    used[j] = True
+                    self._desc[lid] = det.desc[j]
+                    self._misses[lid] = 0
+                    matched_count[cam_name] += 1
+                    tracked_uv[cam_name].append(det.uv[j])
+                else:
+                    self._misses[lid] = self._misses.get(lid, 0) + 1
+                    if self._misses[lid] > o.max_consecutive_misses:
+                        keep[li] = False
+                        self.counters.deleted_unmatched += 1
+                    else:
+                        tracked_uv[cam_name].append(proj.uv[vis[k]])
+        # --- batch update with every camera's matches (one map, eq. 7) ---------------------------
+        if rows_H:
+            H = np.concatenate(rows_H, axis=0)
+            res = np.concatenate(rows_res)
+            ekf.update(H, res, np.eye(len(res)) * o.pixel_sigma_px**2)
+        for ci, cam_name in enumerate(self.camera_names):
+            self.counters.matches[cam_name] += matched_count[cam_name]
+            self.counters.landmarks_deleted[cam_name] += int(np.sum(~keep & (ekf.lm_cam == ci)))
+        for lid in ekf.lm_id[~keep]:
+            self._desc.pop(int(lid), None)
+            self._misses.pop(int(lid), None)
+        ekf.remove_landmarks(keep)
+        # --- new landmarks (eq. 8) ------------------------------------------------------------------
+        for ci, cam_name in enumerate(self.camera_names):
+            det = detections.get(cam_name)
+            if det is None or len(det) == 0:
+                continue
+            self._add_landmarks(ci, cam_name, det, used_kp[cam_name], tracked_uv[cam_name])
+        self._frames_since_match = 0 if sum(matched_count.values()) > 0 else self._frames_since_match + 1
+        return self.pose(int(stamp_us), matched_count)
+
+    def _add_landmarks(
+        self, ci: int, cam_name: str, det: Detections, used: np.ndarray, tracked: list[np.ndarray]
+    ) -> None:
+        ekf = self.ekf
+        assert ekf is not None
+        o = self.opts
+        cam = self.cameras[cam_name]
+        free = o.max_landmarks_per_camera - int(np.sum(ekf.lm_cam == ci))
+        if free <= 0:
+            return
+        m = o.image_margin_px
+        cand = (
+            ~used
+            & (det.uv[:, 0] >= m)
+            & (det.uv[:, 0] <= cam.width - 1 - m)
+            & (det.uv[:, 1] >= m)
+            & (det.uv[:, 1] <= cam.height - 1 - m)
+        )
+        tracked_arr = np.asarray(tracked, float).reshape(-1, 2)
+        if len(tracked_arr):
+            d2 = np.min(np.sum((det.uv[:, None, :] - tracked_arr[None]) ** 2, axis=2), axis=1)
+            cand &= d2 >= o.min_new_separation_px**2
+        cidx = np.flatnonzero(cand)
+        if len(cidx) == 0:
+            return
+        # near-duplicate keypoints (SIFT reports one blob at several orientations): keep the first
+        uv_c = det.uv[cidx]
+        _, first = np.unique(np.round(uv_c / 2.0), axis=0, return_index=True)
+        cidx = cidx[np.sort(first)]
+        pick = sample_new_landmarks(
+            det.uv[cidx],
+            tracked_arr,
+            free,
+            o.sampling,
+            self.rng,
+            o.kde_min_bandwidth_px,
+            o.kde_default_bandwidth_px,
+        )
+        if len(pick) == 0:
+            return
+        sel = cidx[pick]
+        uv = det.uv[sel]
+        rho0, sigma_rho = self._depth_prior(uv, cam)
+        y, J_pose, J_uv = lmk.initialise(uv, rho0, ekf.r, ekf.R_world_body, cam)
+        ids = ekf.add_landmarks(y, J_pose, J_uv, o.pixel_sigma_px, sigma_rho, ci)
+        for lid, j in zip(ids, sel):
+            self._desc[int(lid)] = det.desc[j]
+            self._misses[int(lid)] = 0
+        self.counters.landmarks_added[cam_name] += len(ids)
+
+    def _depth_prior(self, uv: np.ndarray, cam: lmk.CameraModel) -> tuple[np.ndarray, np.ndarray]:
+        """Inverse-depth prior for new rays: flat ground at the altimeter's height, else Civera's default."""
+        ekf = self.ekf
+        assert ekf is not None
+        o = self.opts
+        n = len(uv)
+        if self._last_range is None:
+            return np.full(n, o.init_rho_no_altimeter), np.full(n, o.init_rho_sigma_no_altimeter)
+        R_wb = ekf.R_world_body
+        height = self._last_range[1] * max(R_wb[2, 2], 0.2)  # vertical height above the ground below
+        K = cam.K
+        h_cam = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(n)], axis=1)
+        h_world = h_cam @ (R_wb @ cam.R_body_cam).T
+        down = h_world[:, 2] / np.linalg.norm(h_world, axis=1)
+        depth = height / np.maximum(down, 0.2)
+        rho0 = 1.0 / depth
+        return rho0, o.init_rho_rel_sigma * rho0
+
+    # ------------------------------------------------------------------ output
+    def pose(self, stamp_us: int, matched: dict[str, int] | None = None) -> SlamPose:
+        """Current pose with the (6,6) position/attitude covariance (m^2, rad^2) in roll/pitch/yaw."""
+        ekf = self.ekf
+        assert ekf is not None
+        P = ekf.covariance()
+        R = rot_from_quat(ekf.q)
+        rpy = rpy_from_rot(R)
+        W = euler_rate_matrix(rpy)
+        T = np.zeros((6, 6))
+        T[:3, :3] = np.eye(3)
+        T[3:, 3:] = W
+        cov = T @ P[:6, :6] @ T.T
+        cov = 0.5 * (cov + cov.T)
+        nl = {c: int(np.sum(ekf.lm_cam == i)) for i, c in enumerate(self.camera_names)}
+        return SlamPose(
+            stamp_us=stamp_us,
+            p_world=ekf.r.copy(),
+            v_world=ekf.v.copy(),
+            rpy_rad=rpy,
+            covariance=cov,
+            matched=dict(matched or dict.fromkeys(self.camera_names, 0)),
+            n_landmarks=nl,
+            position_sigma_max_m=ekf.position_sigma_max_m(),
+            frames_since_match=self._frames_since_match,
+        )
+
+    @property
+    def state_dim(self) -> int:
+        return VEHICLE_DIM if self.ekf is None else self.ekf.P.shape[0]

@@ -1,0 +1,274 @@
+"""The ``vis_thermal_ekf`` estimator (paper 2): inverse-depth EKF-SLAM on the visible camera, the
+thermal camera, or both in one map, propagated with the IMU and aided by the altimeter.
+
+The daemon drives ``VisThermalEkfEstimator`` (``companion.types.Estimator``); the benchmark and tests
+drive the same object through ``run_sequence``. The math lives in ``companion.ekf``.
+
+Numerical note: the filter's matrices are a few hundred wide, where multi-threaded OpenBLAS is
+slower than one thread and collapses on a loaded 2-core machine (measured: 8 ms single-threaded vs
+130 ms with two contended threads for the dual-mode update). Every call into the filter therefore
+runs under ``threadpoolctl`` with BLAS limited to one thread (scoped to the call; the rest of the
+process keeps its setting).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+from threadpoolctl import ThreadpoolController
+
+from companion.constants import GRAVITY_MPS2
+from companion.ekf.features import Detections, SiftDetector
+from companion.ekf.landmarks import CameraModel
+from companion.ekf.options import EkfOptions, cameras_for_mode
+from companion.ekf.slam import SlamPose, VisThermalSlam
+from companion.ekf.so3 import quat_from_rot
+from companion.geometry import CameraIntrinsics, rot_from_rpy
+from companion.types import (
+    AltimeterSample,
+    AttitudeSample,
+    EstimateStatus,
+    Frame,
+    ImuSample,
+    PoseEstimate,
+)
+
+__all__ = ["EkfOptions", "SequenceResult", "VisThermalEkfEstimator", "run_sequence"]
+
+_BLAS = ThreadpoolController()
+
+
+def _attitude_from_gravity(accel_mps2: np.ndarray, yaw_rad: float) -> np.ndarray:
+    """(3,) roll, pitch, yaw of a vehicle at rest whose accelerometer reads ``accel_mps2`` (FRD)."""
+    f = -np.asarray(accel_mps2, float)  # at rest the specific force is -g: f points up, -f down
+    roll = float(np.arctan2(f[1], f[2]))
+    pitch = float(np.arctan2(-f[0], np.hypot(f[1], f[2])))
+    return np.array([roll, pitch, yaw_rad])
+
+
+class VisThermalEkfEstimator:
+    """Implements ``companion.types.Estimator`` for paper 2's EKF-SLAM.
+
+    intrinsics / R_body_cam / p_cam_in_body: per camera name ("visible", "thermal"); the cameras of
+    ``options.mode`` must be present. The two cameras may share the pose (paper 2: co-registered) or
+    have their own extrinsics. initial_rpy: if None, the first ATTITUDE sample, else gravity from the
+    IMU with yaw 0. The filter starts at the first frame set's stamp.
+    """
+
+    def __init__(
+        self,
+        options: EkfOptions,
+        intrinsics: Mapping[str, CameraIntrinsics],
+        R_body_cam: Mapping[str, np.ndarray],
+        initial_p_world: np.ndarray,
+        initial_v_world: np.ndarray | None = None,
+        initial_rpy: np.ndarray | None = None,
+        gravity_mps2: float = GRAVITY_MPS2["europa"],
+        p_cam_in_body: Mapping[str, np.ndarray] | None = None,
+    ) -> None:
+        self.options = options
+        self.cameras: tuple[str, ...] = cameras_for_mode(options.mode)
+        models = {}
+        for c in self.cameras:
+            if c not in intrinsics or c not in R_body_cam:
+                raise ValueError(f"mode {options.mode!r} needs intrinsics and R_body_cam for camera {c!r}")
+            intr = intrinsics[c]
+            p = np.zeros(3) if p_cam_in_body is None or c not in p_cam_in_body else p_cam_in_body[c]
+            models[c] = CameraModel(
+                intr.K, intr.width, intr.height, np.asarray(R_body_cam[c], float), np.asarray(p, float)
+            )
+        self._models = models
+        self.slam = VisThermalSlam(options, models, gravity_mps2)
+        self._detectors = {c: SiftDetector(options) for c in self.cameras}
+        self._pool = ThreadPoolExecutor(max_workers=len(self.cameras)) if len(self.cameras) > 1 else None
+        self._p0 = np.asarray(initial_p_world, float).copy()
+        self._v0 = np.zeros(3) if initial_v_world is None else np.asarray(initial_v_world, float).copy()
+        self._rpy0 = None if initial_rpy is None else np.asarray(initial_rpy, float).copy()
+        self._attitude: np.ndarray | None = None
+        self._last_good: SlamPose | None = None
+        self.reset_counter = 0
+        self.counters = {"frames": 0, "bad_frames": 0, "reinit": 0, "missing_camera": 0}
+
+    # -- autopilot inputs ----------------------------------------------------------------------------
+    def on_attitude(self, s: AttitudeSample) -> None:
+        """Used for the initial attitude only (the filter estimates its own afterwards)."""
+        self._attitude = np.array([s.roll_rad, s.pitch_rad, s.yaw_rad])
+
+    def on_imu(self, s: ImuSample) -> None:
+        """Queue an IMU sample; propagation (eqs. 1-4) happens as the filter needs it (``ekf.slam``)."""
+        with _BLAS.limit(limits=1, user_api="blas"):
+            self.slam.add_imu(s.stamp_us, s.accel_mps2, s.gyro_rps)
+
+    def on_altimeter(self, s: AltimeterSample) -> None:
+        with _BLAS.limit(limits=1, user_api="blas"):
+            self.slam.add_altimeter(s.stamp_us, s.range_m)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    # -- frames -----------------------------------------------------------------------------------------
+    def detect(self, frames: Mapping[str, Frame]) -> dict[str, Detections]:
+        """SIFT on each usable frame of this estimator's cameras (in parallel threads for two cameras)."""
+        todo: dict[str, np.ndarray] = {}
+        for c in self.cameras:
+            f = frames.get(c)
+            if f is None:
+                self.counters["missing_camera"] += 1
+                continue
+            m = self._models[c]
+            img = f.image
+            if img.ndim != 2 or img.shape != (m.height, m.width) or img.dtype not in (np.uint8, np.uint16):
+                self.counters["bad_frames"] += 1
+                continue
+            todo[c] = img
+        if self._pool is not None and len(todo) > 1:
+            futs = {c: self._pool.submit(self._detectors[c].detect, img) for c, img in todo.items()}
+            return {c: fu.result() for c, fu in futs.items()}
+        return {c: self._detectors[c].detect(img) for c, img in todo.items()}
+
+    def on_frames(self, frames: dict[str, Frame]) -> PoseEstimate | None:
+        """Detect, then ``on_detections`` at the mean capture stamp of the set."""
+        usable = {c: f for c, f in frames.items() if c in self.cameras}
+        if not usable:
+            return None
+        stamp = int(round(np.mean([f.stamp_us for f in usable.values()])))
+        return self.on_detections(stamp, self.detect(usable))
+
+    def on_detections(self, stamp_us: int, detections: Mapping[str, Detections]) -> PoseEstimate | None:
+        """One filter step from precomputed detections (the benchmark shares SIFT across modes)."""
+        self.counters["frames"] += 1
+        with _BLAS.limit(limits=1, user_api="blas"):
+            if not self.slam.started:
+                self._start(stamp_us)
+            pose = self.slam.process_frame(stamp_us, dict(detections))
+            if not self.slam.ekf.is_finite() or not np.all(np.isfinite(pose.p_world)):
+                self._reinit(stamp_us)
+                return None
+        return self._to_estimate(pose)
+
+    def _start(self, stamp_us: int) -> None:
+        rpy = self._rpy0
+        if rpy is None:
+            rpy = self._attitude
+        if rpy is None:
+            imu = self.slam.latest_imu()
+            rpy = _attitude_from_gravity(imu[0], 0.0) if imu is not None else np.zeros(3)
+        q = quat_from_rot(rot_from_rpy(*rpy))
+        self.slam.start(stamp_us, self._p0, self._v0, q)
+
+    def _reinit(self, stamp_us: int) -> None:
+        """Restart the filter at the last good pose (landmarks dropped) and bump reset_counter."""
+        self.counters["reinit"] += 1
+        self.reset_counter += 1
+        good = self._last_good
+        slam = VisThermalSlam(self.options, self._models, self.slam.gravity_mps2)
+        slam._last_range = self.slam._last_range  # keep the depth prior across the restart
+        self.slam = slam
+        if good is None:
+            self._start(stamp_us)
+        else:
+            self.slam.start(stamp_us, good.p_world, good.v_world, quat_from_rot(rot_from_rpy(*good.rpy_rad)))
+
+    def _to_estimate(self, pose: SlamPose) -> PoseEstimate:
+        o = self.options
+        matched = sum(pose.matched.values())
+        tracked = sum(pose.n_landmarks.values())
+        if self.counters["frames"] == 1:
+            status = EstimateStatus.INITIALISING
+        elif (
+            pose.frames_since_match >= o.lost_after_frames
+            or pose.position_sigma_max_m > o.lost_position_sigma_m
+        ):
+            status = EstimateStatus.LOST
+        else:
+            status = EstimateStatus.OK
+        if status is EstimateStatus.OK:
+            self._last_good = pose
+        c = self.slam.counters
+        return PoseEstimate(
+            stamp_us=pose.stamp_us,
+            p_body_in_world_m=pose.p_world,
+            rpy_rad=pose.rpy_rad,
+            covariance=pose.covariance,
+            reset_counter=self.reset_counter,
+            quality=float(matched / max(tracked, 1)),
+            status=status,
+            info={
+                "matched": pose.matched,
+                "landmarks": pose.n_landmarks,
+                "position_sigma_m": pose.position_sigma_max_m,
+                "altimeter_updates": c.altimeter_updates,
+                "stale_frames": c.stale_frames,
+                "late_imu": c.late_imu,
+            },
+        )
+
+
+@dataclass(frozen=True)
+class SequenceResult:
+    """Estimates of an offline run, one row per frame set.
+
+    stamp_us: (F,) int64; p_world: (F,3); rpy_rad: (F,3); covariance: (F,6,6); status: list of str;
+    matched: (F,) visual matches used; seconds: wall time spent in the estimator (frames only).
+    """
+
+    stamp_us: np.ndarray
+    p_world: np.ndarray
+    rpy_rad: np.ndarray
+    covariance: np.ndarray
+    status: list[str]
+    matched: np.ndarray
+    seconds: float
+    counters: dict
+
+
+def run_sequence(
+    estimator: VisThermalEkfEstimator,
+    imu: Iterable[ImuSample],
+    altimeter: Iterable[AltimeterSample],
+    frames: Iterable[tuple[int, Mapping[str, Frame | Detections]]],
+) -> SequenceResult:
+    """Feed a recorded flight to ``estimator`` in time order and collect its estimates.
+
+    frames: (stamp_us, {camera: Frame or Detections}) in increasing stamp order. Samples stamped at or
+    before a frame reach the estimator before it (the daemon sees the same when the IMU is on time).
+    """
+    events: list[tuple[int, int, object]] = []
+    events += [(s.stamp_us, 0, s) for s in imu]
+    events += [(s.stamp_us, 1, s) for s in altimeter]
+    events += [(int(t), 2, fs) for t, fs in frames]
+    events.sort(key=lambda e: (e[0], e[1]))
+    rows: list[PoseEstimate] = []
+    spent = 0.0
+    for stamp, kind, obj in events:
+        if kind == 0:
+            estimator.on_imu(obj)  # type: ignore[arg-type]
+        elif kind == 1:
+            estimator.on_altimeter(obj)  # type: ignore[arg-type]
+        else:
+            fs = dict(obj)  # type: ignore[call-overload]
+            t0 = time.perf_counter()
+            if fs and all(isinstance(v, Detections) for v in fs.values()):
+                est = estimator.on_detections(stamp, fs)
+            else:
+                est = estimator.on_frames(fs)
+            spent += time.perf_counter() - t0
+            if est is not None:
+                rows.append(est)
+    n = len(rows)
+    return SequenceResult(
+        stamp_us=np.array([r.stamp_us for r in rows], dtype=np.int64),
+        p_world=np.array([r.p_body_in_world_m for r in rows]).reshape(n, 3),
+        rpy_rad=np.array([r.rpy_rad for r in rows]).reshape(n, 3),
+        covariance=np.array([r.covariance for r in rows]).reshape(n, 6, 6),
+        status=[r.status.value for r in rows],
+        matched=np.array([sum(r.info["matched"].values()) for r in rows], dtype=int),
+        seconds=spent,
+        counters={"estimator": dict(estimator.counters), "slam": vars(estimator.slam.counters).copy()},
+    )
