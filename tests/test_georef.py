@@ -1,0 +1,255 @@
+"""GeoReferencer on a small synthetic world: accuracy, tilt rectification, rotation/scale, bad inputs."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.geometry import CameraIntrinsics, camera_pose, pixel_rays_cam, rot_from_rpy
+from companion.georef import georef as G
+from companion.georef.dem import Dem
+from companion.georef.georef import GeoReferencer, GeorefOptions
+from companion.georef.shading import Sun, lambert_shading
+
+SUN = Sun.from_degrees(10.0, 0.0, 60.0)
+INTR = CameraIntrinsics.from_focal_sensor(240, 240, 36.0, 36.0)  # fx = 240 px, 53 deg field of view
+AGL_M = 60.0  # GSD 0.25 m
+
+
+class World:
+    """A 200 m x 200 m terrain at 0.25 m (rolling hills and bumps, ~14 m relief), flat albedo, and a
+    ray-casting renderer: the truth. ``dem(factor)`` is what an estimator gets."""
+
+    cell_m = 0.25
+
+    def __init__(self, seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        n = 800
+        h = np.zeros((n, n), np.float32)
+        for sigma_m, amp in ((24.0, 6.0), (8.0, 1.2), (3.0, 0.25), (1.0, 0.04), (0.5, 0.012)):
+            layer = cv2.GaussianBlur(
+                rng.standard_normal((n, n)).astype(np.float32), (0, 0), sigma_m / self.cell_m
+            )
+            h += amp * layer / layer.std()
+        self.truth = Dem(h, (n - 1) / 2 * self.cell_m, -(n - 1) / 2 * self.cell_m, self.cell_m)
+        self.radiance = lambert_shading(h, self.cell_m, SUN) * np.float32(0.3)
+        self.rays = pixel_rays_cam(INTR).reshape(-1, 3)
+
+    def dem(self, factor: int = 1) -> Dem:
+        return self.truth if factor == 1 else self.truth.resampled(self.cell_m * factor)
+
+    def ground(self, north: float, east: float) -> float:
+        return float(self.truth.height_at(north, east)[0])
+
+    def render(self, R_world_body: np.ndarray, p_body: np.ndarray, noise: float = 1.0, seed: int = 0):
+        R_wc, c = camera_pose(R_world_body, p_body)
+        d = self.rays @ R_wc.T
+        t = (-c[2] - float(self.truth.height_m.mean())) / d[:, 2]
+        for _ in range(15):  # fixed point: slopes x ray angles < 1 here, so it converges
+            x = c[None] + t[:, None] * d
+            hh = self._lookup(self.truth.height_m, x)
+            t = (-c[2] - hh) / d[:, 2]
+        x = c[None] + t[:, None] * d
+        img = self._lookup(self.radiance, x).reshape(INTR.height, INTR.width) * 70.0
+        img = img + np.random.default_rng(seed).normal(0.0, noise, img.shape)
+        return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+    def _lookup(self, raster: np.ndarray, x: np.ndarray) -> np.ndarray:
+        r, col = self.truth.rc_from_ne(x[:, 0], x[:, 1])
+        shape = (INTR.height, INTR.width)
+        out = cv2.remap(
+            raster.astype(np.float32),
+            col.astype(np.float32).reshape(shape),
+            r.astype(np.float32).reshape(shape),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        return out.ravel().astype(np.float64)
+
+    def pose(self, north: float, east: float, roll_deg=0.0, pitch_deg=0.0, yaw_deg=0.0):
+        R = rot_from_rpy(*np.radians([roll_deg, pitch_deg, yaw_deg]))
+        return R, np.array([north, east, -(self.ground(north, east) + AGL_M)])
+
+
+@pytest.fixture(scope="module")
+def world() -> World:
+    return World(0)
+
+
+@pytest.fixture(scope="module")
+def geo_fine(world: World) -> GeoReferencer:
+    # the true surface as DEM: only the method's own error is left
+    return GeoReferencer(
+        world.dem(1), SUN, INTR, options=GeorefOptions(reference_upsample=1, dem_smooth_cells=0.0)
+    )
+
+
+def _error_px(fix: G.GeoFix, p_true: np.ndarray) -> float:
+    return float(np.hypot(*(fix.p_world[:2] - p_true[:2])) / (AGL_M / INTR.fx))
+
+
+def test_recovers_position_from_a_wrong_prediction(world: World, geo_fine: GeoReferencer) -> None:
+    rng = np.random.default_rng(10)
+    errors = []
+    for k in range(4):
+        north, east = rng.uniform(-40, 40, 2)
+        R, p = world.pose(north, east, yaw_deg=rng.uniform(-180, 180))
+        img = world.render(R, p, seed=k)
+        pred = p + np.r_[rng.uniform(-3, 3, 2), 0.0]  # a few metres off, like a VO prediction
+        fix = geo_fine.locate(img, R, pred, alt_agl_m=AGL_M)
+        assert fix.ok, fix.reason
+        errors.append(_error_px(fix, p))
+        # eq. 18: Z = DEM + H
+        assert fix.p_world[2] == pytest.approx(p[2], abs=0.3)
+        assert fix.gsd_m == pytest.approx(AGL_M / INTR.fx)
+        assert 0.3 < fix.quality <= 1.0
+        assert fix.cov_ne_m2.shape == (2, 2) and np.all(np.linalg.eigvalsh(fix.cov_ne_m2) > 0)
+        # the reported shift is the prediction's error in frame pixels (negated)
+        assert np.hypot(*fix.shift_px) == pytest.approx(np.hypot(*(pred - p)[:2]) / fix.gsd_m, abs=0.5)
+    assert max(errors) < 0.25
+
+
+def test_height_from_predicted_altitude_when_no_agl(world: World, geo_fine: GeoReferencer) -> None:
+    R, p = world.pose(10.0, -20.0, yaw_deg=30.0)
+    img = world.render(R, p)
+    pred = p + np.array([2.0, -1.5, 0.0])
+    fix = geo_fine.locate(img, R, pred)  # height above ground from the predicted altitude and the DEM
+    assert fix.ok
+    assert _error_px(fix, p) < 0.5
+    assert fix.p_world[2] == pytest.approx(pred[2])
+
+
+def test_tilted_frame_is_rectified(world: World, geo_fine: GeoReferencer) -> None:
+    """Roll/pitch ~10 deg over ~14 m relief: as good as nadir (a plain homography would not be)."""
+    rng = np.random.default_rng(11)
+    for k, (roll, pitch) in enumerate(((10.0, -8.0), (-9.0, 10.0), (0.0, 12.0))):
+        north, east = rng.uniform(-40, 40, 2)
+        R, p = world.pose(north, east, roll, pitch, rng.uniform(-180, 180))
+        img = world.render(R, p, seed=k)
+        fix = geo_fine.locate(img, R, p + np.r_[rng.uniform(-3, 3, 2), 0.0], alt_agl_m=AGL_M)
+        assert fix.ok, fix.reason
+        assert _error_px(fix, p) < 0.3
+
+
+def test_coarse_noisy_dem_still_locates(world: World) -> None:
+    """The estimator's DEM 4x coarser than the surface, with noise and holes: still within 2 pixels (the
+    coarse DEM's shading of sub-cell roughness costs about a pixel, measured)."""
+    dem = world.dem(4)
+    h = dem.height_m.copy()
+    rng = np.random.default_rng(12)
+    h += rng.normal(0.0, 0.1, h.shape).astype(np.float32)
+    h[100:104, 60:66] = np.nan
+    geo = GeoReferencer(Dem(h, dem.north0_m, dem.east0_m, dem.cell_m), SUN, INTR)
+    for k in range(3):
+        north, east = rng.uniform(-40, 40, 2)
+        R, p = world.pose(north, east, yaw_deg=rng.uniform(-180, 180))
+        fix = geo.locate(world.render(R, p, seed=k), R, p + np.r_[rng.uniform(-3, 3, 2), 0.0], AGL_M)
+        assert fix.ok, fix.reason
+        assert _error_px(fix, p) < 2.0
+
+
+def test_rotation_and_scale_recovered(world: World, geo_fine: GeoReferencer) -> None:
+    """Heading off by 4 deg and height off by 4 %: recovered within 0.5 deg and 1 %, then the fix."""
+    R, p = world.pose(-15.0, 25.0, yaw_deg=40.0)
+    img = world.render(R, p)
+    R_wrong = rot_from_rpy(0.0, 0.0, np.radians(40.0 - 4.0))
+    fix = geo_fine.locate(
+        img, R_wrong, p + np.array([1.5, -2.0, 0.0]), AGL_M / 1.04, solve_rotation_scale=True
+    )
+    assert fix.ok, fix.reason
+    assert np.degrees(fix.rotation_rad) == pytest.approx(4.0, abs=0.5)
+    assert fix.scale == pytest.approx(1.04, rel=0.01)
+    assert fix.rotation_scale_quality > 0.05
+    assert _error_px(fix, p) < 0.5
+
+
+def test_deterministic(world: World, geo_fine: GeoReferencer) -> None:
+    R, p = world.pose(5.0, 5.0, yaw_deg=-60.0)
+    img = world.render(R, p)
+    a = geo_fine.locate(img, R, p + np.array([1.0, 1.0, 0.0]), AGL_M)
+    b = geo_fine.locate(img, R, p + np.array([1.0, 1.0, 0.0]), AGL_M)
+    assert np.array_equal(a.p_world, b.p_world) and a.quality == b.quality
+
+
+# ---------------------------------------------------------------------------------------------------------
+# bad inputs: each gives its reason, never an exception, never a fix
+
+
+def _assert_no_fix(fix: G.GeoFix, reason: str) -> None:
+    assert not fix.ok
+    assert fix.reason == reason
+    assert np.all(np.isnan(fix.p_world))
+
+
+def test_blank_frame(world: World, geo_fine: GeoReferencer) -> None:
+    R, p = world.pose(0.0, 0.0)
+    _assert_no_fix(geo_fine.locate(np.full((240, 240), 87, np.uint8), R, p, AGL_M), G.REASON_BLANK)
+    dark = np.random.default_rng(0).integers(0, 2, (240, 240)).astype(np.uint8)  # night: noise only
+    _assert_no_fix(geo_fine.locate(dark, R, p, AGL_M), G.REASON_BLANK)
+
+
+def test_saturated_frame(world: World, geo_fine: GeoReferencer) -> None:
+    R, p = world.pose(0.0, 0.0)
+    img = world.render(R, p).astype(np.int32) * 8
+    _assert_no_fix(geo_fine.locate(np.clip(img, 0, 255).astype(np.uint8), R, p, AGL_M), G.REASON_SATURATED)
+
+
+def test_off_dem(world: World, geo_fine: GeoReferencer) -> None:
+    R, p = world.pose(0.0, 0.0)
+    img = world.render(R, p)
+    _assert_no_fix(geo_fine.locate(img, R, np.array([500.0, 0.0, -70.0]), AGL_M), G.REASON_OFF_DEM)
+    # inside the DEM but the footprint mostly outside
+    _assert_no_fix(geo_fine.locate(img, R, np.array([95.0, 95.0, -70.0]), AGL_M), G.REASON_OFF_DEM)
+    holes = world.dem(4).height_m.copy()
+    holes[10:-10, 10:-10] = np.nan
+    d4 = world.dem(4)
+    geo = GeoReferencer(Dem(holes, d4.north0_m, d4.east0_m, d4.cell_m), SUN, INTR)
+    _assert_no_fix(geo.locate(img, R, p, AGL_M), G.REASON_OFF_DEM)
+
+
+def test_sun_below_horizon(world: World) -> None:
+    geo = GeoReferencer(world.dem(4), Sun.from_degrees(10.0, 0.0, -5.0), INTR)
+    R, p = world.pose(0.0, 0.0)
+    _assert_no_fix(geo.locate(world.render(R, p), R, p, AGL_M), G.REASON_SUN_BELOW_HORIZON)
+
+
+def test_no_height(world: World, geo_fine: GeoReferencer) -> None:
+    R, p = world.pose(0.0, 0.0)
+    img = world.render(R, p)
+    below_ground = np.array([p[0], p[1], -world.ground(p[0], p[1]) + 5.0])
+    _assert_no_fix(geo_fine.locate(img, R, below_ground), G.REASON_NO_HEIGHT)
+    _assert_no_fix(geo_fine.locate(img, R, p, float("nan")), G.REASON_NO_HEIGHT)
+    _assert_no_fix(geo_fine.locate(img, R, p, -3.0), G.REASON_NO_HEIGHT)
+
+
+def test_low_quality_for_unrelated_texture(world: World, geo_fine: GeoReferencer) -> None:
+    R, p = world.pose(0.0, 0.0)
+    rng = np.random.default_rng(1)
+    clouds = cv2.GaussianBlur(rng.standard_normal((240, 240)).astype(np.float32), (0, 0), 4.0)
+    img = np.clip(120 + 40 * clouds / clouds.std(), 0, 255).astype(np.uint8)
+    fix = geo_fine.locate(img, R, p, AGL_M)
+    _assert_no_fix(fix, G.REASON_LOW_QUALITY)
+    assert fix.quality < geo_fine.opt.min_quality
+
+
+def test_low_overlap_when_looking_at_the_horizon(world: World, geo_fine: GeoReferencer) -> None:
+    R, p = world.pose(0.0, 0.0, pitch_deg=70.0)
+    _assert_no_fix(geo_fine.locate(world.render(*world.pose(0.0, 0.0)), R, p, AGL_M), G.REASON_LOW_OVERLAP)
+
+
+@pytest.mark.parametrize(
+    ("image", "R", "p"),
+    [
+        (np.zeros((240, 241), np.uint8), np.eye(3), np.zeros(3)),  # wrong size
+        (np.zeros((240, 240, 3), np.uint8), np.eye(3), np.zeros(3)),  # colour
+        (np.zeros((240, 240), np.int64), np.eye(3), np.zeros(3)),  # odd type
+        (np.full((240, 240), np.nan, np.float32), np.eye(3), np.zeros(3)),  # NaN pixels
+        (np.zeros((240, 240), np.uint8), np.full((3, 3), np.nan), np.zeros(3)),  # NaN attitude
+        (np.zeros((240, 240), np.uint8), 2 * np.eye(3), np.zeros(3)),  # not a rotation
+        (np.zeros((240, 240), np.uint8), np.eye(3), np.array([0.0, np.inf, -70.0])),  # inf position
+        (np.zeros((240, 240), np.uint8), np.eye(3), np.zeros(2)),  # wrong position shape
+    ],
+)
+def test_bad_input(geo_fine: GeoReferencer, image, R, p) -> None:
+    _assert_no_fix(geo_fine.locate(image, R, p, AGL_M), G.REASON_BAD_INPUT)
