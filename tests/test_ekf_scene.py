@@ -26,10 +26,13 @@ def camera_model(intr: CameraIntrinsics = INTR) -> CameraModel:
 
 @dataclass(frozen=True)
 class PointScene:
-    """points: (M,3) world NED; desc: (M,128) float32 descriptors (norm ~512, like OpenCV SIFT)."""
+    """points: (M,3) world NED; desc: (M,128) float32 descriptors (norm ~512, like OpenCV SIFT);
+    strength: (M,) fixed detector response (the strongest points in view are the ones detected, as SIFT's
+    nfeatures keeps the highest-contrast keypoints)."""
 
     points: np.ndarray
     desc: np.ndarray
+    strength: np.ndarray
 
 
 def make_scene(
@@ -41,7 +44,7 @@ def make_scene(
     pts = np.column_stack([ne, -elev])
     d = np.abs(rng.normal(0, 1, (n_points, 128))).astype(np.float32)
     d *= 512.0 / np.linalg.norm(d, axis=1, keepdims=True)
-    return PointScene(pts, d)
+    return PointScene(pts, d, rng.random(n_points))
 
 
 def detections(
@@ -65,7 +68,7 @@ def detections(
     )
     ids = np.flatnonzero(ok)
     if len(ids) > max_kp:
-        ids = np.sort(rng.choice(ids, max_kp, replace=False))
+        ids = np.sort(ids[np.argsort(-scene.strength[ids])[:max_kp]])
     uv_n = uv[ids] + rng.normal(0, pixel_sigma, (len(ids), 2))
     desc = scene.desc[ids] + rng.normal(0, desc_sigma, (len(ids), 128)).astype(np.float32)
     return Detections(uv_n, desc.astype(np.float32)), ids

@@ -64,8 +64,7 @@ class EkfOptions:
     facet_rel_sigma: float = 0.02  # sigma of the landmark-facet model error, as a fraction of the range
     altimeter_gate_chi2: float = 10.83  # Mahalanobis gate (chi-square, 1 dof, 99.9 %)
     # --- diversity sampling (eq. 8) ---
-    kde_min_bandwidth_px: float = 16.0  # px, floor of the Scott's-rule kernel width
-    kde_default_bandwidth_px: float = 64.0  # px, kernel width when fewer than 2 landmarks are tracked
+    kde_min_bandwidth_px: float = 16.0  # px, floor of the Scott's-rule kernel width (cap: ``sampling``)
     # --- SIFT (cv2.SIFT_create) ---
     sift_nfeatures: int = 400  # keypoints kept per image (best by contrast)
     sift_octave_layers: int = 3  # Lowe's value

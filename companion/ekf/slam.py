@@ -24,7 +24,7 @@ from companion.ekf.altimeter import facet_range, select_facet
 from companion.ekf.features import Detections, match_predicted
 from companion.ekf.filter import VEHICLE_DIM, InverseDepthEkf
 from companion.ekf.options import EkfOptions, cameras_for_mode
-from companion.ekf.sampling import sample_new_landmarks
+from companion.ekf.sampling import budget_bandwidth, sample_new_landmarks
 from companion.ekf.so3 import euler_rate_matrix, rot_from_quat
 from companion.geometry import rpy_from_rot
 
@@ -342,7 +342,8 @@ class VisThermalSlam:
             o.sampling,
             self.rng,
             o.kde_min_bandwidth_px,
-            o.kde_default_bandwidth_px,
+            budget_bandwidth(cam.width * cam.height, o.max_landmarks_per_camera),
+            float(cam.width * cam.height),
         )
         if len(pick) == 0:
             return
