@@ -48,7 +48,7 @@ TILT_SIGMA_DEG = 3.0
 PRED_SIGMA_M = 3.0
 MARGIN_M = 90.0  # keep the footprint (about 100 m wide) on the 600 m scene
 GROSS_ERROR_M = 2.0  # a "wrong fix" for the quality calibration
-DEGRADATION = dict(factor=4, noise_sigma_m=0.3, hole_fraction=0.01)
+DEGRADATION: dict[str, Any] = dict(factor=4, noise_sigma_m=0.3, hole_fraction=0.01)
 METHODS = ("ours", "ours_presumed", "cv2_phasecorrelate", "sift", "orb")
 SWEEPS = {
     "intensity": [0.1, 1.0, 5.0, 10.0, 12.0],  # 5.3.1 (fixed exposure: the camera does not adapt)
@@ -89,10 +89,11 @@ def _to_u8(img: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 def _feature_matcher(kind: str) -> Callable[[RectifiedPair], tuple[np.ndarray, float] | None]:
+    det: cv2.Feature2D
     if kind == "sift":
-        det, norm, ratio = cv2.SIFT_create(nfeatures=2000), cv2.NORM_L2, 0.75
+        det, norm, ratio = cv2.SIFT.create(nfeatures=2000), cv2.NORM_L2, 0.75
     else:
-        det, norm, ratio = cv2.ORB_create(nfeatures=2000), cv2.NORM_HAMMING, 0.8
+        det, norm, ratio = cv2.ORB.create(nfeatures=2000), cv2.NORM_HAMMING, 0.8
     bf = cv2.BFMatcher(norm)
 
     def match(pair: RectifiedPair) -> tuple[np.ndarray, float] | None:
@@ -106,8 +107,8 @@ def _feature_matcher(kind: str) -> Callable[[RectifiedPair], tuple[np.ndarray, f
         ]
         if len(good) < 4:
             return None
-        src = np.float32([kr[m.queryIdx].pt for m in good])
-        dst = np.float32([kf[m.trainIdx].pt for m in good])
+        src = np.array([kr[m.queryIdx].pt for m in good], np.float32)
+        dst = np.array([kf[m.trainIdx].pt for m in good], np.float32)
         M, inliers = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=2.0)
         if M is None or int(inliers.sum()) < 5:
             return None
@@ -182,7 +183,7 @@ def summarise(raw: dict) -> dict[str, Any]:
     em = np.asarray(raw["err_m"], float)
     ok = e < 1.0
     fixed = np.isfinite(e)
-    s = dict(
+    s: dict[str, Any] = dict(
         n=int(e.size),
         mean_px=float(e[ok].mean()) if ok.any() else float("nan"),
         # inverted_cdf: no interpolation between a finite error and a failure's inf

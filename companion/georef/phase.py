@@ -198,9 +198,9 @@ def peak(q: np.ndarray, shape: tuple[int, int], weight_sum: float, upsample: int
     x0 = float(_signed(ix, cols))
     k = np.arange(-upsample, upsample + 1, dtype=np.float64) / upsample
     fine = upsampled_surface(q, cols, y0 + k, x0 + k)
-    j, i = np.unravel_index(int(np.argmax(fine)), fine.shape)
-    j = int(np.clip(j, 1, fine.shape[0] - 2))
-    i = int(np.clip(i, 1, fine.shape[1] - 2))
+    j0, i0 = np.unravel_index(int(np.argmax(fine)), fine.shape)
+    j = int(np.clip(j0, 1, fine.shape[0] - 2))
+    i = int(np.clip(i0, 1, fine.shape[1] - 2))
     dy = _parabola_offset(fine[j - 1, i], fine[j, i], fine[j + 1, i]) / upsample
     dx = _parabola_offset(fine[j, i - 1], fine[j, i], fine[j, i + 1]) / upsample
     shift = np.array([x0 + k[i] + dx, y0 + k[j] + dy])
