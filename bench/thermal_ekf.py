@@ -32,9 +32,11 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+import json  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from dataclasses import replace  # noqa: E402
+from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import cv2  # noqa: E402
@@ -293,6 +295,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trials", type=int, default=None, help="trials per trajectory (default 30, quick 3)")
     p.add_argument("--trajectories", type=str, default=None, help="comma-separated names (default all)")
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--runs-log", type=Path, default=None, help="append each finished trial here (JSON lines)")
+    p.add_argument("--from-runs", type=Path, default=None, help="summarise a runs log instead of running")
     a = p.parse_args(argv)
     names = (
         a.trajectories.split(",")
@@ -303,18 +307,26 @@ def main(argv: list[str] | None = None) -> int:
     jobs = [(n, k, a.seed) for k in range(trials) for n in names]
     t0 = time.perf_counter()
     results: list[dict[str, Any]] = []
-    if a.workers > 1:
+
+    def done(r: dict[str, Any]) -> None:
+        results.append(r)
+        print(f"  traj {r['name']:>2} trial {r['trial']:>2}: " + "  ".join(
+            f"{c} {r[c]['E_percent']:.2f}%" for c in CONFIGS), flush=True)  # fmt: skip
+        if a.runs_log is not None:
+            with a.runs_log.open("a") as f:
+                f.write(json.dumps(r) + "\n")
+
+    if a.from_runs is not None:
+        results = [json.loads(line) for line in a.from_runs.read_text().splitlines() if line.strip()]
+        names = [n for n in names if any(r["name"] == n for r in results)]
+        trials = max(sum(r["name"] == n for r in results) for n in names)
+    elif a.workers > 1:
         with ProcessPoolExecutor(max_workers=a.workers) as ex:
             for r in ex.map(_run_job, jobs):
-                results.append(r)
-                print(f"  traj {r['name']:>2} trial {r['trial']:>2}: " + "  ".join(
-                    f"{c} {r[c]['E_percent']:.2f}%" for c in CONFIGS), flush=True)  # fmt: skip
+                done(r)
     else:
         for j in jobs:
-            r = _run_job(j)
-            results.append(r)
-            print(f"  traj {r['name']:>2} trial {r['trial']:>2}: " + "  ".join(
-                f"{c} {r[c]['E_percent']:.2f}%" for c in CONFIGS), flush=True)  # fmt: skip
+            done(_run_job(j))
     wall = time.perf_counter() - t0
     s = summarise(results, names)
     per, avg = s["trajectories"], s["average"]

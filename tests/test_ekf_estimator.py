@@ -1,0 +1,151 @@
+"""The ``vis_thermal_ekf`` estimator end to end on the simulated Europa: rendered visible + thermal frames,
+IMU and altimeter, through the daemon's entry points (``on_frames`` ...) and the offline ``run_sequence``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.constants import GRAVITY_MPS2, R_BODY_CAM_NADIR
+from companion.ekf.options import EkfOptions
+from companion.estimators.vis_thermal_ekf import VisThermalEkfEstimator, run_sequence
+from companion.geometry import camera_pose, rpy_from_rot
+from companion.types import AltimeterSample, AttitudeSample, EstimateStatus, Frame, ImuSample
+from sim_bridge.europa import EuropaCameras, make_europa
+from sim_bridge.europa.sensors import altimeter_samples
+from sim_bridge.europa.trajectories import paper_trajectories
+from sim_bridge.trajectory import imu_samples
+
+N_FRAMES = 10
+
+
+@pytest.fixture(scope="module")
+def flight():
+    """Trajectory 1 (linear descent) over a 0.5 m-grid site: 10 frame pairs at 1 Hz, IMU 100 Hz, altimeter 10 Hz."""
+    world = make_europa(seed=0, size_m=400.0, cell_m=0.5)
+    cams = EuropaCameras(world)
+    traj = paper_trajectories(world, seed=0)["1"]
+    imu = imu_samples(traj, 100.0, None, seed=1)
+    alt_t, alt_r = altimeter_samples(traj, world, 10.0, None, 2, cams.tracer)
+    t = traj.t0_s + np.arange(N_FRAMES)
+    states = traj.states(t)
+    frames = []
+    for i, st in enumerate(states):
+        R_wc, p_c = camera_pose(st.R_world_body, st.p_world, R_BODY_CAM_NADIR)
+        vis, tir = cams.render(R_wc, p_c, seed=i)
+        t_us = int(round(st.t_s * 1e6))
+        frames.append(
+            (t_us, {"visible": Frame(t_us, "visible", vis), "thermal": Frame(t_us, "thermal", tir)})
+        )
+    t_end = frames[-1][0]
+    return {
+        "intr": cams.intrinsics,
+        "states": states,
+        "frames": frames,
+        "imu": [
+            ImuSample(int(a), f, g) for a, f, g in zip(imu.t_us, imu.accel_mps2, imu.gyro_rps) if a <= t_end
+        ],
+        "alt": [
+            AltimeterSample(int(a), float(r)) for a, r in zip(alt_t, alt_r) if np.isfinite(r) and a <= t_end
+        ],
+    }
+
+
+def _estimator(flight, mode: str, **kw) -> VisThermalEkfEstimator:
+    st0 = flight["states"][0]
+    intr = flight["intr"]
+    return VisThermalEkfEstimator(
+        EkfOptions(mode=mode, **kw),
+        {"visible": intr, "thermal": intr},
+        {"visible": R_BODY_CAM_NADIR, "thermal": R_BODY_CAM_NADIR},
+        st0.p_world,
+        st0.v_world,
+        rpy_from_rot(st0.R_world_body),
+        gravity_mps2=GRAVITY_MPS2["europa"],
+    )
+
+
+@pytest.mark.parametrize("mode", ["visible", "thermal", "dual"])
+def test_estimator_tracks_a_rendered_descent(flight, mode):
+    est = _estimator(flight, mode)
+    res = run_sequence(est, flight["imu"], flight["alt"], [(t, dict(fs)) for t, fs in flight["frames"]])
+    est.close()
+    assert est.cameras == (("visible", "thermal") if mode == "dual" else (mode,))
+    assert len(res.stamp_us) == N_FRAMES
+    assert res.status[0] == "initialising" and all(s == "ok" for s in res.status[1:])
+    assert np.all(res.matched[1:] >= 12 * len(est.cameras))
+    truth = np.stack([st.p_world for st in flight["states"]])
+    err = np.linalg.norm(res.p_world - truth, axis=1)
+    assert err[-1] < 2.0, err  # ~12 m flown
+    cov = res.covariance[-1]
+    np.testing.assert_allclose(cov, cov.T, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    assert np.sqrt(cov[0, 0] + cov[1, 1] + cov[2, 2]) < 5.0
+    assert est.slam.counters.altimeter_updates > 30
+
+
+def test_detections_path_equals_frames_path(flight):
+    """The benchmark feeds precomputed SIFT detections; the daemon feeds frames. Same estimates."""
+    a = _estimator(flight, "dual")
+    b = _estimator(flight, "dual")
+    frames = flight["frames"][:6]
+    dets = [(t, a.detect(fs)) for t, fs in frames]
+    ra = run_sequence(a, flight["imu"], flight["alt"], dets)
+    rb = run_sequence(b, flight["imu"], flight["alt"], frames)
+    a.close()
+    b.close()
+    np.testing.assert_array_equal(ra.p_world, rb.p_world)
+    np.testing.assert_array_equal(ra.covariance, rb.covariance)
+
+
+def test_bad_and_missing_frames_are_survived(flight):
+    est = _estimator(flight, "dual")
+    imu, alt = flight["imu"], flight["alt"]
+    ii = ia = 0
+    out = []
+    for k, (t, fs) in enumerate(flight["frames"][:8]):
+        while ii < len(imu) and imu[ii].stamp_us <= t:
+            est.on_imu(imu[ii])
+            ii += 1
+        while ia < len(alt) and alt[ia].stamp_us <= t:
+            est.on_altimeter(alt[ia])
+            ia += 1
+        fs = dict(fs)
+        if k == 3:
+            fs["thermal"] = Frame(t, "thermal", np.zeros((100, 100), np.uint16))  # mis-sized
+        if k == 4:
+            del fs["visible"]  # the visible frame of this pair never arrived
+        if k == 5:
+            fs["visible"] = Frame(t, "visible", np.zeros((480, 640), np.uint8))  # blank
+        out.append(est.on_frames(fs))
+    est.close()
+    assert est.counters["bad_frames"] == 1 and est.counters["missing_camera"] == 1
+    assert all(e is not None for e in out)
+    assert all(e.is_sendable() for e in out[1:])
+    truth = flight["states"][7].p_world
+    assert np.linalg.norm(out[-1].p_body_in_world_m - truth) < 2.0
+    assert est.on_frames({"nadir": flight["frames"][0][1]["visible"]}) is None  # not one of its cameras
+
+
+def test_configuration_errors_and_initial_attitude(flight):
+    intr = flight["intr"]
+    with pytest.raises(ValueError):
+        VisThermalEkfEstimator(
+            EkfOptions(mode="dual"), {"visible": intr}, {"visible": R_BODY_CAM_NADIR}, np.zeros(3)
+        )
+    with pytest.raises(ValueError):
+        EkfOptions(mode="infrared")
+    with pytest.raises(ValueError):
+        EkfOptions(sampling="random")
+    # no initial attitude given: the first ATTITUDE sample is used
+    st0 = flight["states"][0]
+    est = VisThermalEkfEstimator(
+        EkfOptions(mode="thermal"), {"thermal": intr}, {"thermal": R_BODY_CAM_NADIR}, st0.p_world, st0.v_world
+    )
+    rpy = rpy_from_rot(st0.R_world_body)
+    est.on_attitude(AttitudeSample(0, *rpy))
+    t, fs = flight["frames"][0]
+    e = est.on_frames({"thermal": fs["thermal"]})
+    assert e.status is EstimateStatus.INITIALISING and not e.is_sendable()
+    np.testing.assert_allclose(e.rpy_rad, rpy, atol=1e-9)
+    est.close()
