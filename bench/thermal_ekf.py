@@ -55,12 +55,13 @@ CAMERA_HZ = 1.0
 IMU_HZ = 100.0
 ALTIMETER_HZ = 10.0
 WORLD_SEED = 0
-CONFIGS = {
-    "visible": dict(mode="visible", sampling="kde"),
-    "thermal": dict(mode="thermal", sampling="kde"),
-    "dual": dict(mode="dual", sampling="kde"),
-    "dual_uniform": dict(mode="dual", sampling="uniform"),
+CONFIGS: dict[str, tuple[str, str]] = {
+    "visible": ("visible", "kde"),
+    "thermal": ("thermal", "kde"),
+    "dual": ("dual", "kde"),
+    "dual_uniform": ("dual", "uniform"),
 }
+"""Configuration name -> (mode, sampling)."""
 BENCH_OPTIONS = EkfOptions(
     initial_position_sigma_m=0.05,
     initial_velocity_sigma_mps=0.05,
@@ -157,8 +158,8 @@ def run_trial(name: str, trial: int, seed: int) -> dict[str, Any]:
     truth = np.stack([s.p_world for s in states])
     intr = cams.intrinsics
     out: dict[str, Any] = {"name": name, "trial": trial, "distance_m": float(dist[-1])}
-    for cfg, kw in CONFIGS.items():
-        opts = replace(base, seed=tseed, **kw)
+    for cfg, (mode, sampling) in CONFIGS.items():
+        opts = replace(base, seed=tseed, mode=mode, sampling=sampling)
         est = VisThermalEkfEstimator(
             opts,
             {"visible": intr, "thermal": intr},

@@ -1,7 +1,7 @@
 """SIFT detection and prediction-guided matching (paper 2 section 3.2). No cross-modal matching:
 each camera's landmarks are matched only against that camera's keypoints.
 
-SIFT is OpenCV's ``cv2.SIFT_create`` with the settings in ``EkfOptions`` (sift_*): 400 keypoints per
+SIFT is OpenCV's ``cv2.SIFT.create`` (= ``cv2.SIFT_create``) with the settings in ``EkfOptions`` (sift_*): 400 keypoints per
 image ranked by contrast, 3 layers per octave (Lowe), contrast threshold 0.02 (half OpenCV's 0.04,
 because icy scenes are low in contrast), edge threshold 10 and sigma 1.6 (OpenCV / Lowe defaults).
 Visible frames are used as they come (8-bit grey; the paper applies no other pre-processing).
@@ -54,7 +54,7 @@ class SiftDetector:
 
     def __init__(self, options: EkfOptions) -> None:
         o = options
-        self._sift = cv2.SIFT_create(
+        self._sift = cv2.SIFT.create(
             nfeatures=o.sift_nfeatures,
             nOctaveLayers=o.sift_octave_layers,
             contrastThreshold=o.sift_contrast_threshold,

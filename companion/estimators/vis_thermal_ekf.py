@@ -147,7 +147,8 @@ class VisThermalEkfEstimator:
             if not self.slam.started:
                 self._start(stamp_us)
             pose = self.slam.process_frame(stamp_us, dict(detections))
-            if not self.slam.ekf.is_finite() or not np.all(np.isfinite(pose.p_world)):
+            ekf = self.slam.ekf
+            if ekf is None or not ekf.is_finite() or not np.all(np.isfinite(pose.p_world)):
                 self._reinit(stamp_us)
                 return None
         return self._to_estimate(pose)
