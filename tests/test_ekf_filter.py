@@ -176,3 +176,12 @@ def test_landmark_budget_and_bookkeeping(mode):
         np.testing.assert_allclose(pose.covariance, pose.covariance.T)
         assert np.all(np.linalg.eigvalsh(pose.covariance) > 0)
     assert sum(pose.matched.values()) >= 8 * len(slam.camera_names)
+
+
+def test_imu_before_the_first_frame_is_bounded():
+    """A camera that never starts must not make the IMU queue grow without bound."""
+    slam = VisThermalSlam(EkfOptions(mode="visible"), {"visible": camera_model()}, G)
+    for k in range(5000):
+        slam.add_imu(k * 10_000, np.array([0.0, 0.0, -G]), np.zeros(3))
+    assert len(slam._queue) <= 26
+    assert slam.latest_imu() is not None

@@ -125,10 +125,15 @@ class VisThermalSlam:
             return
         keys = [s[0] for s in self._queue]
         self._queue.insert(bisect.bisect_right(keys, sample[0]), sample)
+        horizon = self._queue[-1][0] - int(self.opts.imu_max_lag_s * 1e6)
         if self.ekf is not None:
-            horizon = self._queue[-1][0] - int(self.opts.imu_max_lag_s * 1e6)
             if self._queue[0][0] < horizon:
                 self._propagate_to(horizon)
+        else:
+            # not started (no frame yet): keep only the lag window, the newest older sample becomes the hold
+            while len(self._queue) > 1 and self._queue[0][0] < horizon:
+                t, acc, gyr = self._queue.pop(0)
+                self._hold, self._hold_stamp = (acc, gyr), t
 
     def latest_imu(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Most recent (accel, gyro) seen, for attitude initialisation from gravity."""
