@@ -17,7 +17,7 @@ from companion.geometry import make_T
 
 @dataclass(frozen=True)
 class Alignment:
-    """T_world_vo: (4, 4) world <- VO frame. yaw_rad: its rotation about down. rms_m: weighted residual.
+    """T_world_vo: (4, 4) world <- VO frame. yaw_rad: its rotation about down. rms_m: RMS residual of the inliers.
     inliers: (N,) bool, points within ``huber_m`` x 3 of the fit. yaw_observable: the points spread
     horizontally enough for the yaw to be estimated (otherwise yaw = 0, translation only)."""
 
@@ -74,5 +74,6 @@ def align_yaw_translation(
         w = w0 * np.where(r <= huber_m, 1.0, huber_m / np.maximum(r, 1e-12))
         T, yaw, obs = _fit(p_vo, p_world, w, min_spread_m)
     r = np.linalg.norm(p_vo @ T[:3, :3].T + T[:3, 3] - p_world, axis=1)
-    rms = float(np.sqrt((w @ r**2) / w.sum()))
-    return Alignment(T, yaw, rms, r < 3.0 * huber_m, obs)
+    inl = r < 3.0 * huber_m
+    rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("inf")
+    return Alignment(T, yaw, rms, inl, obs)

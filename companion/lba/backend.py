@@ -31,11 +31,11 @@ class BackendOptions:
     lba: LbaOptions = field(default_factory=LbaOptions)
     geo_sigma_m: float = 1.0  # sigma0 of a geo-fix, north and east (m), before the w_G weighting:
     # the geo term's sigma is sigma0 / sqrt(w_G) (eq. 23 with unit pixel weights, as in the paper)
-    geo_sigma_z_m: float = 1.5  # sigma0 of the fix's down component (DEM + altimeter, eq. 18; a 1 % altimeter
+    geo_sigma_z_m: float = 2.0  # sigma0 of the fix's down component (DEM + altimeter, eq. 18; a 1 % altimeter
     # alone is 1 m at 100 m)
     geo_min_quality: float = 0.0  # extra gate on the phase-correlation peak, on top of the matcher's own
     geo_gate_chi2: float = 16.27  # Mahalanobis gate of a fix against the prediction (3 dof, p = 0.001)
-    align_min_fixes: int = 4  # eq. 21 alignment once this many key frames have fixes
+    align_min_fixes: int = 3  # eq. 21 alignment once this many key frames have fixes
     align_huber_m: float = 1.0  # robust threshold of the alignment
     align_max_rms_m: float = 2.0  # an alignment worse than this is not trusted (wait for more fixes)
     align_min_spread_m: float = 25.0  # the yaw is aligned only when the fixes spread this far (RMS about
@@ -49,6 +49,9 @@ class BackendOptions:
     # pinned poses fix the gauge including the monocular scale set by the altimeter
     initial_sigma_m: float = 1.0  # once geo-referenced, a start-up key frame (pinned so far) is held by this
     initial_sigma_rad: float = 0.02  # prior instead, so that the fixes can move it
+    geo_on_ground: bool = True  # eq. 24 at the ground point the geo-fix locates on the optical axis (at
+    # the altimeter's range) rather than at the camera: then an attitude error of the pose the fix was
+    # computed with (h x angle: 0.5 m for 0.3 deg at 100 m) does not pass into the fix. False: at the body.
 
 
 @dataclass(frozen=True)
@@ -57,8 +60,9 @@ class BackendJob:
 
     snapshot: the window (front-end map, VO frame). newest_kf: the key frame just made. image: its frame
     (None: no geo-referencing). R_world_body, p_body_in_world: its VO pose (world NED). alt_agl_m: vertical
-    height above ground from the altimeter (None: unknown). dist_since_prev_kf_m: path length since the
-    previous key frame. p_body_in_cam: (3,) lever arm. epoch: map epoch (bumped at each re-initialisation).
+    height above ground from the altimeter (None: unknown); range_m: the altimeter's slant range along the
+    optical axis (None: unknown). dist_since_prev_kf_m: path length since the previous key frame.
+    p_body_in_cam: (3,) body origin in the camera frame. epoch: map epoch (bumped at each re-initialisation).
     """
 
     snapshot: WindowSnapshot
@@ -67,6 +71,7 @@ class BackendJob:
     R_world_body: np.ndarray
     p_body_in_world: np.ndarray
     alt_agl_m: float | None
+    range_m: float | None
     dist_since_prev_kf_m: float
     p_body_in_cam: np.ndarray
     K: np.ndarray
@@ -131,38 +136,44 @@ class Backend:
 
     def _reset_state(self) -> None:
         self.epoch = -1
-        self.fixes: dict[int, np.ndarray] = {}  # accepted fixes (world, aligned frame), by key frame
-        self.pending: dict[int, np.ndarray] = {}  # fixes waiting for the first alignment
-        self.rejected: dict[int, np.ndarray] = {}  # consecutive gated fixes
+        # fixes by key frame, each (6,): the geo-referenced world point and the camera-frame point it locates
+        self.fixes: dict[int, np.ndarray] = {}  # accepted (world frame)
+        self.pending: dict[int, np.ndarray] = {}  # waiting for the first alignment
+        self.rejected: dict[int, np.ndarray] = {}  # consecutive gated ones
         self.cov: dict[int, np.ndarray] = {}  # last marginal covariance per key frame
         self.aligned = False
+        self.yaw_aligned = False
         self.cov_pos_newest: np.ndarray | None = None  # world position covariance of the last newest kf
 
     def _fix_cov(self) -> np.ndarray:
         return np.diag([self.opt.geo_sigma_m**2, self.opt.geo_sigma_m**2, self.opt.geo_sigma_z_m**2])
 
-    def _positions(self, s: WindowSnapshot, kf_ids: list[int], lever: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def _vo_points(s: WindowSnapshot, fixes: dict[int, np.ndarray], kf_ids: list[int]) -> np.ndarray:
+        """(N, 3) where the VO poses put the camera-frame points the fixes locate."""
         idx = {int(k): i for i, k in enumerate(s.kf_ids)}
-        return np.stack(
-            [s.T_world_cam[idx[k], :3, :3] @ lever + s.T_world_cam[idx[k], :3, 3] for k in kf_ids]
-        )
+        T = s.T_world_cam
+        return np.stack([T[idx[k], :3, :3] @ fixes[k][3:] + T[idx[k], :3, 3] for k in kf_ids])
 
     def _try_align(
-        self, s: WindowSnapshot, fixes: dict[int, np.ndarray], lever: np.ndarray
-    ) -> tuple[np.ndarray, list[int]] | None:
-        """Eq. 21 from the fixes of key frames in the snapshot; (T_world_vo, inlier kf ids) or None."""
+        self, s: WindowSnapshot, fixes: dict[int, np.ndarray], min_spread_m: float
+    ) -> tuple[np.ndarray, list[int], bool] | None:
+        """Eq. 21 from the fixes of key frames in the snapshot: (T_world_vo, inlier kf ids, yaw estimated),
+        or None when too few fixes agree. The down axis is whitened by the fixes' sigmas (a fix's height,
+        DEM + altimeter, is much noisier than its north and east)."""
         in_snap = set(int(k) for k in s.kf_ids)
         ks = [k for k in sorted(fixes) if k in in_snap]
         if len(ks) < self.opt.align_min_fixes:
             return None
-        p_vo = self._positions(s, ks, lever)
-        p_geo = np.stack([fixes[k] for k in ks])
-        a = align_yaw_translation(
-            p_vo, p_geo, huber_m=self.opt.align_huber_m, min_spread_m=self.opt.align_min_spread_m
-        )
+        S = np.array([1.0, 1.0, self.opt.geo_sigma_m / self.opt.geo_sigma_z_m])
+        p_vo = self._vo_points(s, fixes, ks) * S
+        p_geo = np.stack([fixes[k][:3] for k in ks]) * S
+        a = align_yaw_translation(p_vo, p_geo, huber_m=self.opt.align_huber_m, min_spread_m=min_spread_m)
         if a.rms_m > self.opt.align_max_rms_m or a.inliers.sum() < self.opt.align_min_fixes:
             return None
-        return a.T_world_vo, [k for k, ok in zip(ks, a.inliers) if ok]
+        T = a.T_world_vo.copy()
+        T[:3, 3] /= S  # the rotation is about down, so it commutes with the scaling of down
+        return T, [k for k, ok in zip(ks, a.inliers) if ok], a.yaw_observable
 
     def _geo(self, job: BackendJob) -> tuple[dict, np.ndarray]:
         """Geo-reference the newest key frame; returns (outcome, T_align)."""
@@ -179,17 +190,24 @@ class Backend:
         k = job.newest_kf
         p_fix = np.asarray(fix.p_world, float)
         out = {"kf": k, "quality": float(fix.quality), "residual_m": (p_fix - job.p_body_in_world).tolist()}
-        lever = job.p_body_in_cam
+        # the located camera-frame point and its world position by the fix (see geo_on_ground)
+        R_wc = job.snapshot.T_world_cam[-1, :3, :3]
+        lever = np.asarray(job.p_body_in_cam, float)
+        if self.opt.geo_on_ground and job.range_m is not None:
+            lever = np.array([0.0, 0.0, float(job.range_m)])
+            p_fix = p_fix + R_wc @ (lever - job.p_body_in_cam)
+        entry = np.concatenate([p_fix, lever])
+        p_pred = R_wc @ lever + job.snapshot.T_world_cam[-1, :3, 3]
         if not self.aligned:
-            self.pending[k] = p_fix
-            res = self._try_align(job.snapshot, self.pending, lever)
+            self.pending[k] = entry
+            res = self._try_align(job.snapshot, self.pending, self.opt.align_min_spread_m)
             if res is None:
                 # keep the most recent ones only: the window moves on
                 for old in sorted(self.pending)[: max(len(self.pending) - 2 * self.opt.align_min_fixes, 0)]:
                     del self.pending[old]
                 out["status"] = "pending"
                 return out, T_align
-            T_align, inliers = res
+            T_align, inliers, self.yaw_aligned = res
             self.fixes.update({kk: self.pending[kk] for kk in inliers})
             self.counters["fix_accepted"] += len(inliers)
             self.pending.clear()
@@ -203,22 +221,30 @@ class Backend:
         # gate against the prediction: the last adjusted key frame's covariance grown by the distance since
         P_pred = np.eye(3) * 1e-2 if self.cov_pos_newest is None else self.cov_pos_newest
         P_pred = P_pred + np.eye(3) * (self.opt.drift_sigma_per_m * job.dist_since_prev_kf_m) ** 2
-        e = p_fix - job.p_body_in_world
+        e = p_fix - p_pred
         d2 = float(e @ np.linalg.solve(P_pred + self._fix_cov(), e))
         out["mahalanobis2"] = d2
         if d2 <= self.opt.geo_gate_chi2:
-            self.fixes[k] = p_fix
+            self.fixes[k] = entry
             self.rejected.clear()
             self.counters["fix_accepted"] += 1
             out["status"] = "accepted"
+            if not self.yaw_aligned:
+                # eq. 21 once more, now with the yaw, as soon as the fixes span enough ground
+                res = self._try_align(job.snapshot, self.fixes, self.opt.align_min_spread_m)
+                if res is not None and res[2]:
+                    T_align = res[0]
+                    self.yaw_aligned = True
+                    self.counters["alignments"] += 1
+                    out["status"] = "aligned_yaw"
             return out, T_align
         self.counters["fix_rejected"] += 1
-        self.rejected[k] = p_fix
+        self.rejected[k] = entry
         out["status"] = "rejected"
         if len(self.rejected) >= self.opt.realign_after_rejections:
-            res = self._try_align(job.snapshot, self.rejected, lever)
+            res = self._try_align(job.snapshot, self.rejected, self.opt.align_min_spread_m)
             if res is not None:
-                T_align, inliers = res
+                T_align, inliers, self.yaw_aligned = res
                 # the old fixes were taken in the old alignment: they are superseded
                 self.fixes = {kk: self.rejected[kk] for kk in inliers}
                 self.counters["fix_accepted"] += len(inliers)
@@ -245,12 +271,13 @@ class Backend:
                 anchor[i] = True
         anchor_cov = np.full((M, 6, 6), np.nan)
         geo_p = np.full((M, 3), np.nan)
+        geo_lever = np.zeros((M, 3))
         for i, k in enumerate(s.kf_ids):
             k = int(k)
             if anchor[i] and k in self.cov:
                 anchor_cov[i] = self.cov[k]
             if k in self.fixes:
-                geo_p[i] = self.fixes[k]
+                geo_p[i], geo_lever[i] = self.fixes[k][:3], self.fixes[k][3:]
         problem = WindowProblem(
             T_world_cam=s.T_world_cam,
             anchor=anchor,
@@ -260,8 +287,8 @@ class Backend:
             obs_lm=s.obs_lm,
             obs_px=s.obs_px,
             K=job.K,
-            p_body_in_cam=job.p_body_in_cam,
             geo_p_world=geo_p,
+            geo_lever_cam=geo_lever,
             geo_cov=np.tile(self._fix_cov(), (M, 1, 1)),
             down_cam=s.down_cam,
         )
@@ -283,11 +310,10 @@ class Backend:
             self.cov_pos_newest = R @ cov_newest[3:, 3:] @ R.T
         out_kf = s.kf_ids[s.obs_kf[~sol.obs_inlier]]
         out_lm = s.lm_ids[s.obs_lm[~sol.obs_inlier]]
-        if "residual_m" in geo and int(s.kf_ids[-1]) == job.newest_kf:
-            lever = job.p_body_in_cam
-            p_new = sol.T_world_cam[-1, :3, :3] @ lever + sol.T_world_cam[-1, :3, 3]
-            if job.newest_kf in self.fixes:
-                geo["post_residual_m"] = (self.fixes[job.newest_kf] - p_new).tolist()
+        if job.newest_kf in self.fixes and int(s.kf_ids[-1]) == job.newest_kf:
+            f = self.fixes[job.newest_kf]
+            p_new = sol.T_world_cam[-1, :3, :3] @ f[3:] + sol.T_world_cam[-1, :3, 3]
+            geo["post_residual_m"] = (f[:3] - p_new).tolist()
         return BackendResult(
             newest_kf=job.newest_kf,
             epoch=job.epoch,

@@ -4,10 +4,11 @@ in GTSAM, solved by Levenberg-Marquardt, with the marginal covariances of the ke
 Cost (eq. 23), written as GTSAM factors:
 - reprojection (eq. 22): ``GenericProjectionFactorCal3_S2`` per observation, isotropic pixel sigma
   (eq. 22's weight w_i = 1 / sigma_px^2) behind a robust kernel (Huber or Cauchy);
-- geo-referencing (eqs. 23-24): ``GPSFactorArm`` per geo-referenced key frame: the body position implied
-  by the camera pose (camera pose composed with the camera-to-body lever arm) minus the geo-fix, in
-  x, y and z, weighted by the confidence w_G: covariance = the fix's own covariance / w_G (w_G = 0 drops
-  the term), behind a robust kernel;
+- geo-referencing (eqs. 23-24): ``GPSFactorArm`` per geo-referenced key frame: the x, y, z deviation
+  between the geo-referenced point and the same point placed by the camera pose (a point fixed in the
+  camera frame: the body origin, or the ground point on the optical axis, see ``lba.backend``), weighted
+  by the confidence w_G: covariance = the fix's covariance / w_G (w_G = 0 drops the term), behind a robust
+  kernel;
 - gravity: ``AttitudeFactorPose3`` per key frame: the down direction measured by the autopilot's
   attitude (roll and pitch; yaw is left free, a compass bias must not enter);
 - key frames outside the window that see the window's points ("anchors", as ORB-SLAM's fixed key
@@ -57,8 +58,9 @@ class WindowProblem:
         prior, NaN where unknown (then pinned).
     p_world: (L, 3) initial landmark positions.
     obs_kf, obs_lm: (O,) indices into the poses and landmarks; obs_px: (O, 2) measured pixels.
-    K: (3, 3) camera matrix. p_body_in_cam: (3,) lever arm (body origin in the camera frame).
-    geo_p_world: (M, 3) geo-referenced body position per key frame, NaN rows where none.
+    K: (3, 3) camera matrix.
+    geo_p_world: (M, 3) geo-referenced point per key frame, NaN rows where none; geo_lever_cam: (M, 3) the
+        point of the camera frame it locates (the body origin, or the ground point on the optical axis).
     geo_cov: (M, 3, 3) its covariance (m^2) before the w_G weighting.
     down_cam: (M, 3) gravity direction in the camera frame from the autopilot's attitude, NaN where none.
     """
@@ -71,8 +73,8 @@ class WindowProblem:
     obs_lm: np.ndarray
     obs_px: np.ndarray
     K: np.ndarray
-    p_body_in_cam: np.ndarray
     geo_p_world: np.ndarray
+    geo_lever_cam: np.ndarray
     geo_cov: np.ndarray
     down_cam: np.ndarray
 
@@ -106,10 +108,11 @@ def robust(base: gtsam.noiseModel.Base, kernel: str, k: float) -> gtsam.noiseMod
 
 
 def geo_factor(
-    key: int, geo_p_world: np.ndarray, p_body_in_cam: np.ndarray, noise: gtsam.noiseModel.Base
+    key: int, geo_p_world: np.ndarray, lever_cam: np.ndarray, noise: gtsam.noiseModel.Base
 ) -> gtsam.NonlinearFactor:
-    """Eq. 24 as a GTSAM factor on the camera pose: error = T_world_cam * p_body_in_cam - geo_p_world."""
-    return gtsam.GPSFactorArm(key, np.asarray(geo_p_world, float), np.asarray(p_body_in_cam, float), noise)
+    """Eq. 24 as a GTSAM factor on the camera pose: error = T_world_cam * lever_cam - geo_p_world, the x, y, z
+    deviation between the geo-referenced point and where the VO pose puts the same point of the camera."""
+    return gtsam.GPSFactorArm(key, np.asarray(geo_p_world, float), np.asarray(lever_cam, float), noise)
 
 
 def geo_noise(cov: np.ndarray, w_geo: float, options: LbaOptions) -> gtsam.noiseModel.Base:
@@ -162,7 +165,7 @@ def build_graph(
                 continue
             geo_index[i] = graph.size()
             noise = geo_noise(problem.geo_cov[i], options.w_geo, options)
-            graph.add(geo_factor(X(i), g, problem.p_body_in_cam, noise))
+            graph.add(geo_factor(X(i), g, problem.geo_lever_cam[i], noise))
     return graph, values, geo_index
 
 
@@ -210,7 +213,7 @@ def solve_window(problem: WindowProblem, options: LbaOptions = LbaOptions()) -> 
     geo_w = np.full(M, np.nan)
     for i, gi in enumerate(geo_index):
         if gi >= 0:
-            r = T[i, :3, :3] @ problem.p_body_in_cam + T[i, :3, 3] - problem.geo_p_world[i]
+            r = T[i, :3, :3] @ problem.geo_lever_cam[i] + T[i, :3, 3] - problem.geo_p_world[i]
             geo_w[i] = float(np.sqrt(r @ np.linalg.solve(problem.geo_cov[i] / options.w_geo, r)))
     cov = np.full((M, 6, 6), np.nan)
     if options.marginals:

@@ -121,6 +121,8 @@ class VisualOdometry:
         self._next_kf = 0
         self._last_kf_frame = 0
         self._init: dict | None = None
+        self._p_start: np.ndarray | None = None
+        self._R_prev: np.ndarray | None = None
 
     # ------------------------------------------------------------------------------------------------
     # public
@@ -145,22 +147,34 @@ class VisualOdometry:
         self,
         image: np.ndarray,
         stamp_us: int,
-        R_world_cam_att: np.ndarray | None,
+        R_att: np.ndarray | None,
         range_m: float | None,
         p_cam_init: np.ndarray | None,
     ) -> VoStatus:
-        """One frame. R_world_cam_att: camera attitude from the autopilot (or None); range_m: altimeter range
-        along the optical axis (or None); p_cam_init: camera position to (re)start from, used while
-        initialising."""
+        """One frame. R_att: camera attitude R_world_cam from the autopilot (or None); range_m: altimeter range
+        along the optical axis (or None); p_cam_init: camera position to (re)start from while initialising
+        (remembered: None keeps the last one given)."""
         self.frame_index += 1
+        if p_cam_init is not None:
+            self._p_start = np.asarray(p_cam_init, float)
         img = prepare(image, self.opt.tracker)
         if self._prev is not None and len(self._pts):
-            pts, ok = track(self._prev, img, self._pts, self.opt.tracker)
+            pred = None
+            R_prev = (
+                self._R_prev if self._R_prev is not None else (None if self.T is None else self.T[:3, :3])
+            )
+            if R_att is not None and R_prev is not None:
+                # rotation-only prediction (the infinite homography): the features' motion in a fast turn
+                H = self.K @ R_att.T @ R_prev @ np.linalg.inv(self.K)
+                h = np.c_[self._pts, np.ones(len(self._pts))] @ H.T
+                pred = h[:, :2] / h[:, 2:]
+            pts, ok = track(self._prev, img, self._pts, self.opt.tracker, pred)
             self._pts, self._ids = pts[ok], self._ids[ok]
         self._prev = img
+        self._R_prev = R_att
         if self.state != "tracking":
-            return self._initialise(img, stamp_us, R_world_cam_att, range_m, p_cam_init)
-        return self._track(img, stamp_us, R_world_cam_att)
+            return self._initialise(img, stamp_us, R_att, range_m, self._p_start)
+        return self._track(img, stamp_us, R_att)
 
     def snapshot(self, window_size: int, max_anchors: int) -> WindowSnapshot:
         """The last ``window_size`` key frames, the map points they see, and up to ``max_anchors`` older key

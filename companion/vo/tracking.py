@@ -13,8 +13,8 @@ import numpy as np
 
 @dataclass(frozen=True)
 class TrackerOptions:
-    win_px: int = 21  # Lucas-Kanade window side
-    pyramid_levels: int = 3  # pyramid levels above the full image
+    win_px: int = 15  # Lucas-Kanade window side
+    pyramid_levels: int = 2  # pyramid levels above the full image (motion is a few pixels per frame)
     max_iterations: int = 30
     epsilon: float = 0.01  # LK convergence, pixels
     fb_max_px: float = 0.5  # forward-backward disagreement above this drops the track
@@ -42,10 +42,16 @@ def prepare(image: np.ndarray, options: TrackerOptions) -> np.ndarray:
 
 
 def track(
-    prev_img: np.ndarray, cur_img: np.ndarray, pts: np.ndarray, options: TrackerOptions = TrackerOptions()
+    prev_img: np.ndarray,
+    cur_img: np.ndarray,
+    pts: np.ndarray,
+    options: TrackerOptions = TrackerOptions(),
+    predicted: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Track (N, 2) points from ``prev_img`` into ``cur_img``.
 
+    predicted: (N, 2) initial guesses in ``cur_img`` (e.g. the rotation between the frames applied from the
+    autopilot's attitude), so that a fast turn does not exceed what the pyramid can follow.
     Returns ((N, 2) float32 new positions, (N,) bool ok): ok requires LK convergence both ways, a
     forward-backward error below ``fb_max_px`` and a position inside the border.
     """
@@ -55,9 +61,22 @@ def track(
     p0 = np.ascontiguousarray(pts, dtype=np.float32).reshape(-1, 1, 2)
     win = (options.win_px, options.win_px)
     crit = _criteria(options)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(
-        prev_img, cur_img, p0, None, winSize=win, maxLevel=options.pyramid_levels, criteria=crit
-    )
+    if predicted is not None:
+        guess = np.ascontiguousarray(predicted, dtype=np.float32).reshape(-1, 1, 2)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+            prev_img,
+            cur_img,
+            p0,
+            guess,
+            winSize=win,
+            maxLevel=options.pyramid_levels,
+            criteria=crit,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+    else:
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+            prev_img, cur_img, p0, None, winSize=win, maxLevel=options.pyramid_levels, criteria=crit
+        )
     p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
         cur_img, prev_img, p1, None, winSize=win, maxLevel=options.pyramid_levels, criteria=crit
     )

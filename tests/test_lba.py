@@ -1,0 +1,265 @@
+"""Local bundle adjustment with the geo-referencing term (companion.lba): factor Jacobian, recovery of a
+synthetic window, w_G = 0 is pure VO, robust loss and gating against a bad geo-fix, eq. 21 alignment,
+marginal covariances."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+import pytest
+from gtsam.symbol_shorthand import X
+from gtsam.utils.numerical_derivative import numericalDerivative11
+
+from companion.constants import R_BODY_CAM_NADIR
+from companion.geometry import CameraIntrinsics, make_T, rot_from_rpy
+from companion.lba.align import align_yaw_translation
+from companion.lba.backend import Backend, BackendJob, BackendOptions
+from companion.lba.window import LbaOptions, WindowProblem, body_covariance, geo_factor, solve_window
+from companion.vo.geometry import reproject
+from companion.vo.odometry import WindowSnapshot
+
+K = CameraIntrinsics.from_focal_sensor(480, 480, 36, 36).K
+
+
+def _scene(seed: int = 0, n_kf: int = 12, n_pts: int = 600):
+    """A nadir camera flying east at 100 m over rolling ground; key frames every 6 m."""
+    rng = np.random.default_rng(seed)
+    T = []
+    for i in range(n_kf):
+        R = (
+            rot_from_rpy(0.02 * rng.standard_normal(), 0.02 * rng.standard_normal(), 0.5 * np.pi)
+            @ R_BODY_CAM_NADIR
+        )
+        T.append(make_T(R, np.array([0.0, 6.0 * i, -100.0])))
+    T = np.stack(T)
+    P = np.c_[
+        rng.uniform(-50, 50, n_pts), rng.uniform(-50, 6.0 * n_kf + 50, n_pts), rng.uniform(-8, 8, n_pts)
+    ]
+    obs_kf, obs_lm, obs_px = [], [], []
+    for i in range(n_kf):
+        uv, z = reproject(K, T[i], P)
+        vis = np.flatnonzero((z > 0) & (uv[:, 0] > 0) & (uv[:, 0] < 480) & (uv[:, 1] > 0) & (uv[:, 1] < 480))
+        obs_kf += [i] * len(vis)
+        obs_lm += list(vis)
+        obs_px += list(uv[vis] + 0.3 * rng.standard_normal((len(vis), 2)))
+    obs_kf, obs_lm, obs_px = np.array(obs_kf), np.array(obs_lm), np.array(obs_px)
+    seen = np.bincount(obs_lm, minlength=n_pts) >= 2
+    remap = -np.ones(n_pts, int)
+    remap[seen] = np.arange(seen.sum())
+    keep = seen[obs_lm]
+    return T, P[seen], obs_kf[keep], remap[obs_lm[keep]], obs_px[keep], rng
+
+
+def _problem(T_true, P_true, obs_kf, obs_lm, obs_px, rng, geo_sigma=0.3, n_anchor=2, perturb=True):
+    M = len(T_true)
+    T0 = T_true.copy()
+    P0 = P_true.copy()
+    if perturb:
+        T0[n_anchor:, :3, 3] += rng.normal(0, 0.5, (M - n_anchor, 3))
+        P0 = P0 + rng.normal(0, 0.5, P0.shape)
+    anchor = np.zeros(M, bool)
+    anchor[:n_anchor] = True
+    geo = T_true[:, :3, 3] + rng.normal(0, geo_sigma, (M, 3))
+    down = np.stack([T[:3, :3].T @ np.array([0.0, 0.0, 1.0]) for T in T_true])
+    return WindowProblem(
+        T_world_cam=T0,
+        anchor=anchor,
+        anchor_cov=np.full((M, 6, 6), np.nan),
+        p_world=P0,
+        obs_kf=obs_kf,
+        obs_lm=obs_lm,
+        obs_px=obs_px,
+        K=K,
+        geo_p_world=geo,
+        geo_lever_cam=np.zeros((M, 3)),
+        geo_cov=np.tile(np.eye(3), (M, 1, 1)),
+        down_cam=down,
+    )
+
+
+def test_geo_factor_jacobian_matches_numerical_derivative():
+    lever = np.array([0.05, -0.1, 0.2])
+    g = np.array([3.0, -2.0, -98.0])
+    noise = gtsam.noiseModel.Isotropic.Sigma(3, 1.0)
+    f = geo_factor(X(0), g, lever, noise)
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        pose = gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, 0.5, 3)), rng.normal(0, 5, 3))
+        v = gtsam.Values()
+        v.insert(X(0), pose)
+        # eq. 24 by hand: body position from the camera pose and lever arm, minus the fix
+        e_hand = pose.rotation().matrix() @ lever + pose.translation() - g
+        np.testing.assert_allclose(f.unwhitenedError(v), e_hand, atol=1e-9)
+        A, _ = f.linearize(v).jacobian()
+
+        def err(p: gtsam.Pose3) -> np.ndarray:
+            return p.rotation().matrix() @ lever + p.translation() - g
+
+        J_num = numericalDerivative11(err, pose)
+        np.testing.assert_allclose(A, J_num, atol=1e-6)
+
+
+def test_window_recovers_perturbed_poses_and_points():
+    T, P, ok, ol, opx, rng = _scene(0)
+    prob = _problem(T, P, ok, ol, opx, rng)
+    sol = solve_window(prob, LbaOptions(w_geo=10.0))
+    assert sol.ok
+    err0 = np.abs(prob.T_world_cam[:, :3, 3] - T[:, :3, 3]).max()
+    err = np.abs(sol.T_world_cam[:, :3, 3] - T[:, :3, 3]).max()
+    assert err0 > 0.5
+    assert err < 0.25
+    assert np.median(np.linalg.norm(sol.p_world - P, axis=1)) < 0.3
+    assert sol.obs_inlier.mean() > 0.97
+    assert sol.error_final < sol.error_initial
+
+
+def test_w_geo_zero_equals_pure_vo():
+    T, P, ok, ol, opx, rng = _scene(1)
+    prob = _problem(T, P, ok, ol, opx, rng)
+    no_geo = replace(prob, geo_p_world=np.full_like(prob.geo_p_world, np.nan))
+    a = solve_window(prob, LbaOptions(w_geo=0.0))
+    b = solve_window(no_geo, LbaOptions(w_geo=10.0))
+    np.testing.assert_allclose(a.T_world_cam, b.T_world_cam, atol=1e-9)
+    np.testing.assert_allclose(a.p_world, b.p_world, atol=1e-9)
+    c = solve_window(prob, LbaOptions(w_geo=10.0))
+    assert np.abs(c.T_world_cam[:, :3, 3] - a.T_world_cam[:, :3, 3]).max() > 1e-4  # the fixes do act
+
+
+def test_geo_term_pulls_a_shifted_window_and_weight_orders_it():
+    T, P, ok, ol, opx, rng = _scene(2)
+    # the VO map is shifted by 2 m east (a drifted window) and only weakly anchored
+    shift = np.array([0.0, 2.0, 0.0])
+    prob = _problem(T, P, ok, ol, opx, rng, geo_sigma=0.05, perturb=False)
+    Ts = prob.T_world_cam.copy()
+    Ts[:, :3, 3] += shift
+    cov = np.diag([1e-4] * 3 + [4.0] * 3)
+    prob = replace(
+        prob, T_world_cam=Ts, p_world=prob.p_world + shift, anchor_cov=np.tile(cov, (len(Ts), 1, 1))
+    )
+    errs = []
+    for w in (1.0, 100.0):
+        sol = solve_window(prob, LbaOptions(w_geo=w))
+        errs.append(np.abs(sol.T_world_cam[:, 1, 3] - T[:, 1, 3]).mean())
+    assert errs[1] < 0.2
+    assert errs[1] < errs[0]
+
+
+def test_bad_geo_fix_is_bounded_by_the_robust_loss():
+    T, P, ok, ol, opx, rng = _scene(4)
+    prob = _problem(T, P, ok, ol, opx, rng, geo_sigma=0.1, perturb=False)
+    bad = prob.geo_p_world.copy()
+    bad[-1] += np.array([20.0, 0.0, 0.0])  # a 20 m wrong fix on the newest key frame
+    good = solve_window(prob, LbaOptions(w_geo=10.0))
+    hit = solve_window(replace(prob, geo_p_world=bad), LbaOptions(w_geo=10.0))
+    plain = solve_window(replace(prob, geo_p_world=bad), LbaOptions(w_geo=10.0, geo_kernel="none"))
+    pull_robust = np.linalg.norm(hit.T_world_cam[-1, :3, 3] - good.T_world_cam[-1, :3, 3])
+    pull_plain = np.linalg.norm(plain.T_world_cam[-1, :3, 3] - good.T_world_cam[-1, :3, 3])
+    assert pull_robust < 0.5
+    assert pull_plain > 2 * pull_robust
+    assert hit.geo_whitened[-1] > 10.0
+
+
+def _snapshot(T, P, ok, ol, opx):
+    M = len(T)
+    anchor = np.zeros(M, bool)
+    anchor[:2] = True
+    down = np.stack([t[:3, :3].T @ np.array([0.0, 0.0, 1.0]) for t in T])
+    return WindowSnapshot(np.arange(M), T.copy(), anchor, down, np.arange(len(P)), P.copy(), ok, ol, opx)
+
+
+class _Fix:
+    def __init__(self, p):
+        self.ok, self.reason, self.p_world, self.quality = True, "", np.asarray(p, float), 0.5
+
+
+def test_backend_gates_a_bad_fix_and_counts_it():
+    T, P, ok, ol, opx, rng = _scene(5)
+    truth = {i: T[i, :3, 3] for i in range(len(T))}
+    fixes = {i: truth[i] + rng.normal(0, 0.2, 3) for i in range(len(T))}
+    fixes[len(T) - 1] = truth[len(T) - 1] + np.array([0.0, 20.0, 0.0])  # scene-07-like failure
+    current = {"k": 0}
+
+    def locate(image, R, p, alt):
+        return _Fix(fixes[current["k"]])
+
+    be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0)), locate)
+    snap_all = _snapshot(T, P, ok, ol, opx)
+    for k in range(2, len(T)):
+        sel = np.arange(k + 1)
+        m = np.isin(snap_all.obs_kf, sel)
+        snap = replace(
+            snap_all,
+            kf_ids=sel,
+            T_world_cam=T[sel],
+            anchor=snap_all.anchor[sel],
+            down_cam=snap_all.down_cam[sel],
+            obs_kf=snap_all.obs_kf[m],
+            obs_lm=snap_all.obs_lm[m],
+            obs_px=snap_all.obs_px[m],
+        )
+        current["k"] = k
+        job = BackendJob(
+            snap,
+            k,
+            np.zeros((4, 4), np.uint8),
+            T[k, :3, :3] @ R_BODY_CAM_NADIR.T,
+            T[k, :3, 3],
+            100.0,
+            None,
+            6.0,
+            np.zeros(3),
+            K,
+        )
+        res = be.process(job)
+    assert res.geo["status"] == "rejected"
+    assert res.counters["fix_rejected"] == 1
+    assert res.counters["fix_accepted"] >= len(T) - 4
+    # the newest pose is not pulled towards the bad fix beyond the gate
+    gate_m = np.sqrt(be.opt.geo_gate_chi2) * be.opt.geo_sigma_m
+    assert np.linalg.norm(res.T_world_cam[-1, :3, 3] - T[-1, :3, 3]) < min(gate_m, 0.5)
+
+
+def test_alignment_recovers_yaw_and_translation_despite_an_outlier():
+    rng = np.random.default_rng(6)
+    p_vo = np.c_[rng.uniform(-60, 60, 20), rng.uniform(-60, 60, 20), rng.uniform(-105, -95, 20)]
+    yaw = np.radians(2.0)
+    T_true = make_T(rot_from_rpy(0.0, 0.0, yaw), np.array([3.0, -1.0, 0.5]))
+    p_w = p_vo @ T_true[:3, :3].T + T_true[:3, 3] + rng.normal(0, 0.1, p_vo.shape)
+    p_w[3] += np.array([30.0, 0.0, 0.0])
+    a = align_yaw_translation(p_vo, p_w)
+    assert a.yaw_observable
+    assert abs(a.yaw_rad - yaw) < np.radians(0.1)
+    np.testing.assert_allclose(a.T_world_vo[:3, 3], T_true[:3, 3], atol=0.1)
+    assert not a.inliers[3] and a.inliers.sum() == 19
+    # a short base does not estimate the yaw
+    b = align_yaw_translation(p_vo[:3] * 0.01, p_w[:3] * 0.0 + p_vo[:3] * 0.01 + 1.0)
+    assert not b.yaw_observable and b.yaw_rad == 0.0
+
+
+def test_marginal_covariance_shrinks_with_geo_and_maps_to_body_axes():
+    T, P, ok, ol, opx, rng = _scene(7)
+    prob = _problem(T, P, ok, ol, opx, rng, perturb=False)
+    cov_init = np.diag([1e-4] * 3 + [1.0] * 3)
+    prob = replace(prob, anchor_cov=np.tile(cov_init, (len(T), 1, 1)))
+    vo = solve_window(prob, LbaOptions(w_geo=0.0))
+    geo = solve_window(prob, LbaOptions(w_geo=100.0))
+    assert np.all(np.isfinite(vo.cov[-1])) and np.all(np.isfinite(geo.cov[-1]))
+    assert np.trace(geo.cov[-1][3:, 3:]) < 0.5 * np.trace(vo.cov[-1][3:, 3:])
+    C = body_covariance(T[-1], geo.cov[-1], R_BODY_CAM_NADIR, np.zeros(3))
+    assert C.shape == (6, 6)
+    np.testing.assert_allclose(C, C.T, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(C) > 0)
+    # position block: the camera-frame translation covariance rotated into the world
+    R = T[-1, :3, :3]
+    np.testing.assert_allclose(C[:3, :3], R @ geo.cov[-1][3:, 3:] @ R.T, rtol=1e-3, atol=1e-8)
+
+
+@pytest.mark.parametrize("kernel", ["huber", "cauchy", "none"])
+def test_kernels_accepted(kernel):
+    T, P, ok, ol, opx, rng = _scene(8, n_kf=5, n_pts=200)
+    sol = solve_window(
+        _problem(T, P, ok, ol, opx, rng), LbaOptions(reprojection_kernel=kernel, geo_kernel=kernel)
+    )
+    assert sol.ok
