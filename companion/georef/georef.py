@@ -4,19 +4,25 @@ Pipeline of ``GeoReferencer.locate``:
 
 1. Sanity checks on the inputs (bad shapes, blank or saturated frames, sun below the horizon, no height
    above ground): each gives ``GeoFix(ok=False, reason=...)``, never an exception.
-2. Rectification to nadir: an ``OrthoGrid`` at the frame's ground sample distance (times ``work_scale``),
-   aligned with the frame's heading and centred where the optical axis meets the ground. Each grid cell takes
-   its DEM height; that 3-D point is projected into the camera with the predicted pose and the frame is
-   ``cv2.remap``-ed onto the grid. This removes tilt and relief parallax in one warp.
-3. Reference: the presumed-sun shading of the DEM (eq. 3) warped onto the same grid (``ReferenceMap``).
-4. Phase correlation (eqs. 1-2, 16) with a window and a band weight limited to what the coarse DEM can
-   represent; sub-pixel peak by an upsampled DFT; quality = normalised peak value 0..1.
-5. Eq. 18: the grid shift is the horizontal error of the predicted position, turned into world north/east
-   through the grid's heading: X = X_R + GSD * dX (rotated into NED), Z = DEM + H. Optionally a second pass
-   at the corrected position removes the first pass's relief parallax.
+2. The frame is reduced to the working resolution and divided by its local mean (the reflectance is
+   multiplicative: large albedo patches would otherwise dominate the low frequencies).
+3. Rectification to nadir: an ``OrthoGrid`` at the frame's ground sample distance / ``work_scale``, aligned
+   with the frame's heading and centred where the optical axis meets the ground. Each grid cell takes its
+   DEM height; that 3-D point is projected into the camera with the predicted pose and the frame is
+   ``cv2.remap``-ed onto the grid: tilt and relief parallax removed in one warp.
+4. Reference: the presumed-sun shading of the DEM (eq. 3) warped onto the same grid (``ReferenceMap``).
+5. Phase correlation (eqs. 1-2, 16): Tukey window, a band weight limited to what the coarse, noisy DEM
+   represents, sub-pixel peak by an upsampled DFT. Eq. 18: the grid shift is the horizontal error of the
+   prediction, turned into world north/east through the grid's heading (X = X_R + GSD dX, rotated into NED;
+   Z = DEM + H).
+6. A second pass at the corrected position (relief parallax of the first pass gone) correlates against a
+   reference fitted to the frame (``companion.georef.illumination``: sun-agnostic shading terms and a
+   local-relief term for topography-correlated reflectance, coherence weights). The quality is the peak value
+   of the presumed-sun correlation of that pass (the fitted one adapts to the frame, so it is no quality).
 
-Optionally (``solve_rotation_scale=True``) heading and height errors are recovered first by Fourier-Mellin
-on the rectified pair, and the pair is rectified again with the corrected heading and height.
+Optionally (``solve_rotation_scale=True``) heading and height errors are recovered first: Fourier-Mellin on
+the rectified pair proposes them, a pattern search on the translation peak value polishes them, and the pair
+is rectified again with the corrected heading and height.
 
 Pure math: numpy/OpenCV, no I/O; ``time.perf_counter`` only to fill ``GeoFix.ms``.
 """
@@ -58,14 +64,14 @@ REASON_BAD_INPUT = "bad_input"
 class GeorefOptions:
     """Geo-referencing settings; defaults measured with ``python -m bench georef``."""
 
-    work_scale: float = (
-        0.5  # correlate at this fraction of the frame resolution (grid GSD = GSD / work_scale)
-    )
+    # correlate at this fraction of the frame resolution (grid GSD = frame GSD / work_scale): the DEM carries
+    # nothing finer than ~4 cells, and 1/3 was measured as accurate as 1/2 at 60 % of the time
+    work_scale: float = 1.0 / 3.0
     grid_fraction: float = 1.0  # side of the ortho grid / side of the nadir footprint
     window_alpha: float = 0.5  # Tukey window taper fraction (1 = Hann)
     band_lo_cycles: float = 2.4  # lowest frequency kept: cycles across the grid (drops albedo gradients)
     band_hi_cycles_per_cell: float = 0.24  # highest frequency kept, cycles per DEM cell (DEM noise above)
-    band_hi_max_cpp: float = 0.25  # and at most this, cycles per grid cell (frame detail the closing removes)
+    band_hi_max_cpp: float = 0.25  # and at most this, cycles per grid cell
     upsample: int = 16  # sub-pixel peak: upsampled-DFT factor (then a parabola on the fine grid)
     iterations: int = 2  # rectify + correlate passes (later ones at the corrected position)
     refine: bool = True  # later passes correlate against the fitted reference (``illumination``)
@@ -79,7 +85,8 @@ class GeorefOptions:
     contrast_sigma_px: float = 8.0  # frame divided by its local mean (Gaussian std, work px): albedo patches
     reference_upsample: int = 2  # shading raster upsampling over the DEM cell
     dem_smooth_cells: float = 0.7  # Gaussian std (DEM cells) on the DEM before shading (noise -> fake slopes)
-    min_quality: float = 0.2  # below: "low_quality"; on the benchmark no fix > 2 m wrong scored above 0.18
+    # below: "low_quality"; on the benchmark scenes no fix more than 2 m wrong scored above ~0.18
+    min_quality: float = 0.2
     blank_std: float = 1.0  # frame std below this (8-bit grey levels): "blank"
     max_saturated_fraction: float = 0.4  # pixels at 0 or full scale above this fraction: "saturated"
     max_invalid_fraction: float = 0.3  # grid cells off the DEM / in holes above this: "off_dem"
@@ -87,14 +94,12 @@ class GeorefOptions:
     max_tilt_rad: float = float(np.radians(45.0))  # optical axis further than this from nadir: "low_overlap"
     fm_n_angle: int = 360  # Fourier-Mellin: log-polar rows over a half turn
     fm_n_radius: int = 256  # Fourier-Mellin: log-polar columns
-    rs_search_steps: tuple[tuple[float, float], ...] = (
-        (2.0, 0.02),
-        (0.6, 0.006),
-    )  # (deg, scale) polish steps
-    sigma_floor_px: float = 0.35  # covariance model: 1-sigma per axis at quality 1 (frame pixels)
-    sigma_k_px: float = (
-        0.33  # covariance model: sigma_px = sigma_floor + sigma_k * (1/q - 1)^2 (benchmark fit)
-    )
+    # rotation/scale polish: pattern-search steps (degrees, scale fraction), coarse to fine
+    rs_search_steps: tuple[tuple[float, float], ...] = ((2.0, 0.02), (0.6, 0.006))
+    # covariance model, sigma_px = sigma_floor + sigma_k * (1/q - 1)^2 per axis (frame pixels), fitted to
+    # the error against quality on the benchmark scenes
+    sigma_floor_px: float = 0.35
+    sigma_k_px: float = 0.33
 
 
 @dataclass(frozen=True)
@@ -323,10 +328,10 @@ class GeoReferencer:
             f_ref = phase.spectrum(pair.reference, pair.weight)
             corr = phase.correlate_spectra(f_img, f_ref, shape, w_band, self.opt.upsample)
             return corr, corr
-        f_bases = [phase.spectrum(b, pair.weight) for b in self.ref.sample_bases(pair.grid)]
+        f_bases = [phase.spectrum(b, pair.weight) for b in self.ref.sample_bases(pair.grid, pair.reference)]
         presumed = phase.correlate_spectra(f_img, f_bases[0], shape, w_band, self.opt.upsample)
         corr = presumed
-        bins = illumination.Bins.make(shape, f_lo, f_hi, self.opt.n_rings, self.opt.n_sectors)
+        bins = illumination.bins(shape, f_lo, f_hi, self.opt.n_rings, self.opt.n_sectors)
         for _ in range(self.opt.fit_iters):
             ref_bins = illumination.fit_reference(f_img, f_bases, bins, corr.shift_px)
             w_bins = illumination.coherence_weight(

@@ -21,6 +21,7 @@ the peak.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -62,6 +63,12 @@ class Bins:
         return np.exp(2j * np.pi * (self.fx * shift_px[0] + self.fy * shift_px[1]))
 
 
+@lru_cache(maxsize=16)
+def bins(shape: tuple[int, int], f_lo: float, f_hi: float, n_rings: int, n_sectors: int) -> Bins:
+    """Cached ``Bins.make`` (the same grid size and band come back every frame)."""
+    return Bins.make(shape, f_lo, f_hi, n_rings, n_sectors)
+
+
 def fit_reference(
     f_frame: np.ndarray, f_bases: list[np.ndarray], bins: Bins, shift_px: np.ndarray
 ) -> np.ndarray:
@@ -76,10 +83,14 @@ def fit_reference(
             out[m] = X[m, 0]
             continue
         Xm = X[m]
-        sq = np.sqrt(bins.mult[m])[:, None]
-        A = np.concatenate([(Xm.real * sq), (Xm.imag * sq)])
-        y = np.concatenate([a[m].real * sq[:, 0], a[m].imag * sq[:, 0]])
-        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        w = bins.mult[m]
+        # real coefficients c minimising sum_bins w |a - X c|^2: normal equations (K x K, K = 5), each
+        # column scaled to unit norm so that the heights (m) and the shadings (0..L) condition alike
+        G = (np.conj(Xm).T * w) @ Xm
+        rhs = (np.conj(Xm).T * w) @ a[m]
+        scale = 1.0 / np.sqrt(np.maximum(np.diag(G).real, 1e-30))
+        Gs = G.real * np.outer(scale, scale)
+        coef = scale * np.linalg.solve(Gs + 1e-9 * np.eye(len(scale)), rhs.real * scale)
         out[m] = Xm @ coef
     return out
 

@@ -110,7 +110,9 @@ class ReferenceMap:
             fine = h
         self.sun_up = sun.elevation_rad > 0.0
         self.shading = lambert_shading(fine, dem.cell_m / u, sun) if self.sun_up else np.zeros_like(fine)
-        self.bases: list[np.ndarray] = [self.shading]
+        # channels warped together (one cv2.warpAffine per frame each): shading + height, and the bases
+        self._shading_height = np.ascontiguousarray(np.dstack([self.shading, fine]).astype(np.float32))
+        self._bases: np.ndarray | None = None
         if with_bases:
             cell = dem.cell_m / u
             de, dn = slopes(fine, cell)
@@ -118,12 +120,9 @@ class ReferenceMap:
             relief = fine - cv2.GaussianBlur(
                 fine, (0, 0), relief_scale_m / cell, borderType=cv2.BORDER_REPLICATE
             )
-            self.bases += [
-                (de * inv_n).astype(np.float32),
-                (dn * inv_n).astype(np.float32),
-                inv_n.astype(np.float32),
-                relief.astype(np.float32),
-            ]
+            self._bases = np.ascontiguousarray(
+                np.dstack([de * inv_n, dn * inv_n, inv_n, relief]).astype(np.float32)
+            )
 
     def _raster_affine(self, grid: OrthoGrid, cell_scale: float) -> np.ndarray:
         """2x3 M with raster (col, row) = M @ (grid col, grid row, 1); raster cells ``cell_scale`` per DEM cell,
@@ -138,23 +137,30 @@ class ReferenceMap:
         return M
 
     def sample(self, grid: OrthoGrid) -> GridSample:
-        """Reference shading, heights and invalid mask on ``grid``: three ``cv2.warpAffine`` calls."""
+        """Reference shading, heights and invalid mask on ``grid``: two ``cv2.warpAffine`` calls."""
         n = grid.size
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        M1 = self._raster_affine(grid, 1.0)
         Mu = self._raster_affine(grid, float(self.upsample))
-        shading = cv2.warpAffine(self.shading, Mu, (n, n), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-        height = cv2.warpAffine(self.height_m, M1, (n, n), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        sh = cv2.warpAffine(self._shading_height, Mu, (n, n), flags=flags, borderMode=cv2.BORDER_REPLICATE)
         invalid = cv2.warpAffine(
-            self.holes, M1, (n, n), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0
+            self.holes,
+            self._raster_affine(grid, 1.0),
+            (n, n),
+            flags=flags,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=1.0,
         )
-        return GridSample(shading, height, invalid)
+        return GridSample(np.ascontiguousarray(sh[..., 0]), np.ascontiguousarray(sh[..., 1]), invalid)
 
-    def sample_bases(self, grid: OrthoGrid) -> list[np.ndarray]:
-        """The basis rasters (``BASIS_NAMES`` order, shading first) on ``grid``, (size, size) float32 each."""
+    def sample_bases(self, grid: OrthoGrid, shading: np.ndarray | None = None) -> list[np.ndarray]:
+        """The basis images (``BASIS_NAMES`` order) on ``grid``, (size, size) float32 each; ``shading`` is the
+        already sampled first one (else sampled again). Needs ``with_bases``."""
+        if self._bases is None:
+            raise ValueError("ReferenceMap was built without bases")
         n = grid.size
         Mu = self._raster_affine(grid, float(self.upsample))
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        return [
-            cv2.warpAffine(b, Mu, (n, n), flags=flags, borderMode=cv2.BORDER_REPLICATE) for b in self.bases
-        ]
+        b = cv2.warpAffine(self._bases, Mu, (n, n), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        if shading is None:
+            shading = self.sample(grid).shading
+        return [shading] + [np.ascontiguousarray(b[..., k]) for k in range(b.shape[2])]
