@@ -42,7 +42,7 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             attitude_sigma_rad=float(np.radians(g.attitude_sigma_deg)),
             max_coast_s=g.max_coast_s,
         )
-        return GeorefEstimator(opt, geo, _initial_position(cfg), yaw0)
+        return GeorefEstimator(opt, geo, _initial_position(cfg))
     if kind == "terrain_lba":
         from companion.estimators.terrain_lba import TerrainLbaEstimator, TerrainLbaOptions
 

@@ -45,7 +45,7 @@ def feed(est: GeorefEstimator, scene, traj, renderer, t_s: float, image: np.ndar
 
 def make_estimator(traj, geo) -> GeorefEstimator:
     s0 = traj.state_at(0.0)
-    return GeorefEstimator(GeorefEstimatorOptions(), geo, s0.p_world + np.array([2.0, -1.5, 0.0]), 0.3)
+    return GeorefEstimator(GeorefEstimatorOptions(), geo, s0.p_world + np.array([2.0, -1.5, 0.0]))
 
 
 def test_tracks_then_lost_on_blank_frames_then_recovers(world) -> None:
@@ -108,3 +108,11 @@ def test_wrong_fixes_are_gated_then_reinitialise(world) -> None:
     last, s_last = outs[-1]
     assert last.reset_counter >= 1 and est.counters["reinit"] >= 1
     assert np.linalg.norm(last.p_body_in_world_m[:2] - (s_last.p_world[:2] + shift[:2])) < 3.0
+
+
+def test_no_estimate_without_the_autopilots_attitude(world) -> None:
+    _, traj, _, geo = world
+    est = make_estimator(traj, geo)
+    frame = Frame(1_000_000, "nadir", np.full((480, 480), 90, np.uint8))
+    assert est.on_frames({"nadir": frame}) is None
+    assert est.no_fix_reasons == {"no_attitude": 1}

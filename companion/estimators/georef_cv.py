@@ -83,7 +83,6 @@ class GeorefEstimator:
         options: GeorefEstimatorOptions,
         georeferencer: GeoReferencer,
         initial_p_world: np.ndarray,
-        initial_yaw_rad: float = 0.0,
     ) -> None:
         self.opt = options
         self.geo = georeferencer
@@ -94,7 +93,6 @@ class GeorefEstimator:
             + [options.altitude_sigma_m**2]
             + [options.initial_speed_sigma_mps**2] * 3
         )
-        self._initial_yaw = initial_yaw_rad
         self._t_us: int | None = None
         self._last_fix_us: int | None = None
         self._gated_offsets: deque[np.ndarray] = deque(maxlen=2 * options.reinit_after_rejections)
@@ -194,10 +192,13 @@ class GeorefEstimator:
         t = frame.stamp_us
         rpy = self._attitude.nearest(t, max_gap_us=100_000)
         if rpy is None:
-            rpy = np.array([0.0, 0.0, self._initial_yaw]) if self._last_fix_us is None else None
-        if rpy is None:
+            # without the autopilot's attitude the frame cannot be rectified: no estimate, counted
             self.no_fix_reasons["no_attitude"] = self.no_fix_reasons.get("no_attitude", 0) + 1
             return None
+        if self._last_fix_us is None:
+            # the configured initial position is a prior with its own covariance: it counts as a fix
+            # at the first frame, so the estimate is OK (and says how uncertain) until max_coast_s passes
+            self._last_fix_us = t
         rpy = np.asarray(rpy, float)
         R = rot_from_rpy(*rpy)
         self._predict(t)
@@ -216,9 +217,7 @@ class GeorefEstimator:
             reason = fix.reason or "low_quality"
             self.no_fix_reasons[reason] = self.no_fix_reasons.get(reason, 0) + 1
             self.counters["no_fix"] += 1
-        if self._last_fix_us is None:
-            status = EstimateStatus.INITIALISING
-        elif (t - self._last_fix_us) * 1e-6 > self.opt.max_coast_s:
+        if (t - self._last_fix_us) * 1e-6 > self.opt.max_coast_s:
             status = EstimateStatus.LOST
         else:
             status = EstimateStatus.OK
