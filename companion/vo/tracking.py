@@ -17,6 +17,8 @@ class TrackerOptions:
     pyramid_levels: int = 2  # pyramid levels above the full image (motion is a few pixels per frame)
     max_iterations: int = 30
     epsilon: float = 0.01  # LK convergence, pixels
+    fb_check: bool = False  # track back and compare (doubles the cost; PnP RANSAC and the adjustment also
+    # reject bad tracks)
     fb_max_px: float = 0.5  # forward-backward disagreement above this drops the track
     border_px: int = 8  # tracks closer than this to the image border are dropped
     detector: str = "gftt"  # "orb" (the paper's choice) or "gftt" (Shi-Tomasi corners)
@@ -52,8 +54,8 @@ def track(
 
     predicted: (N, 2) initial guesses in ``cur_img`` (e.g. the rotation between the frames applied from the
     autopilot's attitude), so that a fast turn does not exceed what the pyramid can follow.
-    Returns ((N, 2) float32 new positions, (N,) bool ok): ok requires LK convergence both ways, a
-    forward-backward error below ``fb_max_px`` and a position inside the border.
+    Returns ((N, 2) float32 new positions, (N,) bool ok): ok requires LK convergence, a position inside
+    the border and (``fb_check``) a forward-backward error below ``fb_max_px``.
     """
     n = len(pts)
     if n == 0:
@@ -77,15 +79,23 @@ def track(
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(
             prev_img, cur_img, p0, None, winSize=win, maxLevel=options.pyramid_levels, criteria=crit
         )
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
-        cur_img, prev_img, p1, None, winSize=win, maxLevel=options.pyramid_levels, criteria=crit
-    )
     p1 = p1.reshape(-1, 2)
-    fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
+    ok = st1.ravel() == 1
+    if options.fb_check:
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
+            cur_img,
+            prev_img,
+            p1.reshape(-1, 1, 2),
+            None,
+            winSize=win,
+            maxLevel=options.pyramid_levels,
+            criteria=crit,
+        )
+        fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
+        ok &= (st2.ravel() == 1) & (fb < options.fb_max_px)
     h, w = cur_img.shape[:2]
     b = options.border_px
-    inside = (p1[:, 0] >= b) & (p1[:, 0] < w - b) & (p1[:, 1] >= b) & (p1[:, 1] < h - b)
-    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < options.fb_max_px) & inside
+    ok &= (p1[:, 0] >= b) & (p1[:, 0] < w - b) & (p1[:, 1] >= b) & (p1[:, 1] < h - b)
     return p1, ok
 
 
