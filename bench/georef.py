@@ -55,6 +55,9 @@ SWEEPS = {
     "azimuth_deg": [-15.0, 0.0, 15.0, 30.0, 45.0],  # 5.3.2
     "elevation_deg": [45.0, 52.5, 60.0, 67.5, 75.0],  # 5.3.3
 }
+RS_SCENES = ("01", "04", "08", "09")
+RS_MAX_YAW_DEG = 5.0
+RS_MAX_SCALE = 0.05
 PAPER_TABLE3_PC_PX = dict(zip(SCENE_IDS, (0.22, 0.07, 2.09, 0.05, 0.06, 0.21, 3.12, 0.03, 0.13)))
 
 
@@ -303,6 +306,72 @@ def run_sweeps(seed: int, n_sweep: int, opts: GeorefOptions, rng: np.random.Gene
     return sweeps
 
 
+def run_rotation_scale(seed: int, n: int, opts: GeorefOptions, rng: np.random.Generator) -> dict[str, dict]:
+    """Heading off by up to 5 deg and height above ground by up to 5 %: ``locate(solve_rotation_scale=True)``
+    (Fourier-Mellin proposal, peak-value pattern search). Errors of the recovered rotation and scale."""
+    out: dict[str, dict] = {}
+    rows = []
+    for sid in RS_SCENES:
+        scene = make_scene(sid, seed=seed)
+        dem, _ = degrade_dem(scene.dem, seed=seed, **DEGRADATION)
+        geo = GeoReferencer(dem, PRESUMED_SUN, INTR, options=opts)
+        frames = sample_frames(scene, VisibleRenderer(scene.dem, scene.albedo, scene.sun, INTR), n, rng)
+        rot_err, scale_err, pos_px, ms, ok = [], [], [], [], []
+        for fr in frames:
+            d_yaw = rng.uniform(-RS_MAX_YAW_DEG, RS_MAX_YAW_DEG)
+            k = 1.0 + rng.uniform(-RS_MAX_SCALE, RS_MAX_SCALE)  # true height = given * k
+            R_given = rot_from_rpy(0.0, 0.0, -np.radians(d_yaw)) @ fr["R"]  # yaw off by -d_yaw
+            t0 = time.perf_counter()
+            fix = geo.locate(fr["image"], R_given, fr["pred"], fr["agl"] / k, solve_rotation_scale=True)
+            ms.append((time.perf_counter() - t0) * 1e3)
+            ok.append(fix.ok)
+            if fix.ok:
+                rot_err.append(abs(np.degrees(fix.rotation_rad) - d_yaw))
+                scale_err.append(abs(fix.scale / k - 1.0))
+                pos_px.append(float(np.hypot(*(fix.p_world[:2] - fr["p"][:2]))) / (fr["agl"] / INTR.fx))
+        res = dict(
+            n=n,
+            fix_rate=float(np.mean(ok)),
+            rotation_err_deg_median=float(np.median(rot_err)) if rot_err else float("nan"),
+            rotation_err_deg_p90=float(np.percentile(rot_err, 90)) if rot_err else float("nan"),
+            scale_err_median=float(np.median(scale_err)) if scale_err else float("nan"),
+            scale_err_p90=float(np.percentile(scale_err, 90)) if scale_err else float("nan"),
+            position_err_px_median=float(np.median(pos_px)) if pos_px else float("nan"),
+            ms_per_frame=float(np.mean(ms)),
+        )
+        out[sid] = res
+        rows.append(
+            [
+                sid,
+                f"{100 * res['fix_rate']:.0f}%",
+                res["rotation_err_deg_median"],
+                res["rotation_err_deg_p90"],
+                100 * res["scale_err_median"],
+                100 * res["scale_err_p90"],
+                res["position_err_px_median"],
+                res["ms_per_frame"],
+            ]
+        )
+    print(
+        table(
+            [
+                "scene",
+                "fixes",
+                "rot med deg",
+                "rot p90 deg",
+                "scale med %",
+                "scale p90 %",
+                "pos med px",
+                "ms/frame",
+            ],
+            rows,
+            title=f"Rotation and scale (heading +-{RS_MAX_YAW_DEG:.0f} deg, height +-{100 * RS_MAX_SCALE:.0f} %)",
+        )
+    )
+    print()
+    return out
+
+
 HEADERS = ["scene", "mean_px", "median_px", "p95_px", "mean_m", "success", "fixes", "ms/frame"]
 
 
@@ -311,6 +380,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=int, default=None, help="frames per scene (default 100, quick 4)")
     p.add_argument(
         "--sweep-frames", type=int, default=None, help="frames per sweep value (default 40, quick 2)"
+    )
+    p.add_argument(
+        "--rs-frames", type=int, default=None, help="rotation/scale frames per scene (20, quick 2)"
     )
     p.add_argument("--scenes", type=str, default=",".join(SCENE_IDS))
     args = p.parse_args(argv)
@@ -375,6 +447,7 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     sweeps = run_sweeps(args.seed, n_sweep, opts, rng)
+    rotation_scale = run_rotation_scale(args.seed, args.rs_frames or (2 if args.quick else 20), opts, rng)
 
     ours = [per_scene[s]["ours"] for s in per_scene]
     goal = dict(
@@ -403,6 +476,7 @@ def main(argv: list[str] | None = None) -> int:
             scenes=per_scene,
             calibration=calib,
             sweeps_scene_08=sweeps,
+            rotation_scale=rotation_scale,
             paper_table3_pc_px=PAPER_TABLE3_PC_PX,
             goal=goal,
         ),

@@ -85,8 +85,8 @@ class GeorefOptions:
     contrast_sigma_px: float = 8.0  # frame divided by its local mean (Gaussian std, work px): albedo patches
     reference_upsample: int = 2  # shading raster upsampling over the DEM cell
     dem_smooth_cells: float = 0.7  # Gaussian std (DEM cells) on the DEM before shading (noise -> fake slopes)
-    # below: "low_quality"; on the benchmark scenes no fix more than 2 m wrong scored above ~0.18
-    min_quality: float = 0.2
+    # below: "low_quality"; on the full benchmark no fix more than 2 m wrong scored above 0.243
+    min_quality: float = 0.25
     blank_std: float = 1.0  # frame std below this (8-bit grey levels): "blank"
     max_saturated_fraction: float = 0.4  # pixels at 0 or full scale above this fraction: "saturated"
     max_invalid_fraction: float = 0.3  # grid cells off the DEM / in holes above this: "off_dem"
@@ -98,7 +98,7 @@ class GeorefOptions:
     rs_search_steps: tuple[tuple[float, float], ...] = ((2.0, 0.02), (0.6, 0.006))
     # covariance model, sigma_px = sigma_floor + sigma_k * (1/q - 1)^2 per axis (frame pixels), fitted to
     # the error against quality on the benchmark scenes
-    sigma_floor_px: float = 0.35
+    sigma_floor_px: float = 0.5
     sigma_k_px: float = 0.33
 
 
