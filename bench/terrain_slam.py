@@ -121,54 +121,67 @@ def ape_stats(t_ref: np.ndarray, p_ref: np.ndarray, t_est: np.ndarray, p_est: np
     return out
 
 
+class Simulation:
+    """One flight's world and sensors: scene, the estimator's degraded DEM, renderer, trajectory, noise."""
+
+    def __init__(self, spec: FlightSpec) -> None:
+        self.spec = spec
+        self.scene = make_scene(spec.scene_id, spec.seed)
+        self.dem_est, self.degradation = degrade_dem(self.scene.dem, factor=4, seed=spec.seed + 1)
+        ground = float(np.nanmean(self.scene.dem.height_m))
+        self.traj = make_trajectory(spec.trajectory, spec.duration_s, ground)
+        self.intr = CameraIntrinsics.from_focal_sensor(480, 480, 36, 36)
+        self.renderer = VisibleRenderer(self.scene.dem, self.scene.albedo, self.scene.sun, self.intr)
+        self.noise = SimNoise()  # the simulated autopilot's telemetry noise (attitude, compass bias, range)
+        self.rng = np.random.default_rng([spec.seed, 7, int(spec.scene_id)])
+        self.yaw_bias = float(self.rng.normal(0.0, self.noise.yaw_bias_rad))
+        self.times = np.arange(0.0, self.traj.duration_s, 1.0 / CAMERA_HZ)
+        self.states = self.traj.states(self.times)
+        self.p_true = np.stack([s.p_world for s in self.states])
+        self.yaw0 = float(rpy_from_rot(self.states[0].R_world_body)[2]) + self.yaw_bias
+        self.render_s = 0.0
+
+    def estimator(self, options: TerrainLbaOptions) -> TerrainLbaEstimator:
+        """The estimator as the daemon builds it: degraded DEM, presumed sun, known start, compass yaw."""
+        return TerrainLbaEstimator(
+            options,
+            self.intr,
+            R_BODY_CAM_NADIR,
+            self.dem_est,
+            self.scene.sun,
+            self.states[0].p_world.copy(),
+            self.yaw0,
+            synchronous_backend=False,
+        )
+
+    def samples(self):
+        """Yield (t_s, AttitudeSample, AltimeterSample, Frame) per camera frame (rendering timed apart)."""
+        n = self.noise
+        for k, (t, s) in enumerate(zip(self.times, self.states)):
+            stamp = int(round(t * 1e6))
+            R_wc, p_c = camera_pose(s.R_world_body, s.p_world)
+            tr = time.perf_counter()
+            img = self.renderer.render(R_wc, p_c, seed=k)
+            self.render_s += time.perf_counter() - tr
+            rpy = rpy_from_rot(s.R_world_body) + self.rng.normal(
+                0.0, [n.roll_pitch_rad, n.roll_pitch_rad, n.yaw_rad]
+            )
+            att = AttitudeSample(stamp, float(rpy[0]), float(rpy[1]), float(rpy[2] + self.yaw_bias))
+            r = range_to_ground(self.scene.dem, s.p_world, s.R_world_body[:, 2])
+            r += self.rng.normal(0.0, n.range_m + n.range_frac * r)
+            yield float(t), att, AltimeterSample(stamp, float(r)), Frame(stamp, "nadir", img, k)
+
+
 def run_flight(spec: FlightSpec, methods: dict[str, TerrainLbaOptions], log: bool = True) -> dict[str, Any]:
     """Render one flight and run every method on it in lock-step; returns per-method results."""
     t0 = time.perf_counter()
-    scene = make_scene(spec.scene_id, spec.seed)
-    dem_est, deg = degrade_dem(scene.dem, factor=4, seed=spec.seed + 1)
-    ground = float(np.nanmean(scene.dem.height_m))
-    traj = make_trajectory(spec.trajectory, spec.duration_s, ground)
-    intr = CameraIntrinsics.from_focal_sensor(480, 480, 36, 36)
-    renderer = VisibleRenderer(scene.dem, scene.albedo, scene.sun, intr)
-    noise = SimNoise()
-    rng = np.random.default_rng([spec.seed, 7, int(spec.scene_id)])
-    yaw_bias = float(rng.normal(0.0, noise.yaw_bias_rad))
-    times = np.arange(0.0, traj.duration_s, 1.0 / CAMERA_HZ)
-    states = traj.states(times)
-    s0 = states[0]
-    yaw0 = float(rpy_from_rot(s0.R_world_body)[2]) + yaw_bias
-    est = {
-        name: TerrainLbaEstimator(
-            opt,
-            intr,
-            R_BODY_CAM_NADIR,
-            dem_est,
-            scene.sun,
-            s0.p_world.copy(),
-            yaw0,
-            synchronous_backend=False,
-        )
-        for name, opt in methods.items()
-    }
+    sim = Simulation(spec)
+    est = {name: sim.estimator(opt) for name, opt in methods.items()}
     setup_s = time.perf_counter() - t0
-    lat = {n: [] for n in methods}
+    lat: dict[str, list[float]] = {n: [] for n in methods}
     got: dict[str, list[tuple[float, np.ndarray]]] = {n: [] for n in methods}
-    render_s = 0.0
-    p_true = np.stack([s.p_world for s in states])
-    for k, (t, s) in enumerate(zip(times, states)):
-        stamp = int(round(t * 1e6))
-        R_wc, p_c = camera_pose(s.R_world_body, s.p_world)
-        tr = time.perf_counter()
-        img = renderer.render(R_wc, p_c, seed=k)
-        render_s += time.perf_counter() - tr
-        rpy = rpy_from_rot(s.R_world_body) + rng.normal(
-            0.0, [noise.roll_pitch_rad, noise.roll_pitch_rad, noise.yaw_rad]
-        )
-        att = AttitudeSample(stamp, float(rpy[0]), float(rpy[1]), float(rpy[2] + yaw_bias))
-        r = range_to_ground(scene.dem, s.p_world, s.R_world_body[:, 2])
-        r += rng.normal(0.0, noise.range_m + noise.range_frac * r)
-        alt = AltimeterSample(stamp, float(r))
-        frame = Frame(stamp, "nadir", img, k)
+    times, p_true, traj, scene = sim.times, sim.p_true, sim.traj, sim.scene
+    for k, (t, att, alt, frame) in enumerate(sim.samples()):
         for n, e in est.items():
             e.on_attitude(att)
             e.on_altimeter(alt)
@@ -179,10 +192,13 @@ def run_flight(spec: FlightSpec, methods: dict[str, TerrainLbaOptions], log: boo
                 got[n].append((t, pe.p_body_in_world_m.copy()))
         if log and k % 300 == 0 and k:
             errs = {
-                n: float(np.linalg.norm(g[-1][1] - s.p_world)) if g and g[-1][0] == t else float("nan")
+                n: float(np.linalg.norm(g[-1][1] - p_true[k])) if g and g[-1][0] == t else float("nan")
                 for n, g in got.items()
             }
             print(f"    t={t:6.1f}s " + " ".join(f"{n}={v:.2f}m" for n, v in errs.items()), flush=True)
+    render_s = sim.render_s
+    deg = sim.degradation
+    spec_yaw_bias = sim.yaw_bias
     distance = traj.distance_m()
     out: dict[str, Any] = {}
     for n, e in est.items():
@@ -222,11 +238,50 @@ def run_flight(spec: FlightSpec, methods: dict[str, TerrainLbaOptions], log: boo
             float(np.degrees(scene.sun.azimuth_rad)),
             float(np.degrees(scene.sun.elevation_rad)),
         ],
-        "yaw_bias_deg": float(np.degrees(yaw_bias)),
+        "yaw_bias_deg": float(np.degrees(spec_yaw_bias)),
         "setup_s": setup_s,
         "render_ms_per_frame": render_s / len(times) * 1e3,
         "wall_s": time.perf_counter() - t0,
     }
+    return out
+
+
+def timing_run(spec: FlightSpec, modes: tuple[str, ...] = ("when_ready", "fixed_delay")) -> dict[str, Any]:
+    """The per-frame path as the daemon runs it: one terrain_lba estimator fed at the camera rate (15 Hz,
+    frames pre-rendered), its back-end working in its process meanwhile. Per mode: latency of
+    ``on_frames`` (p50, p99, max), the rate it could sustain (1 / mean latency), frames over the budget."""
+    sim = Simulation(spec)
+    frames = list(sim.samples())
+    out: dict[str, Any] = {"scene": spec.scene_id, "trajectory": spec.trajectory, "frames": len(frames)}
+    for mode in modes:
+        e = sim.estimator(replace(TerrainLbaOptions(), backend_apply=mode))
+        lat = []
+        errs = []
+        period = 1.0 / CAMERA_HZ
+        t_next = time.perf_counter()
+        for k, (_, att, alt, frame) in enumerate(frames):
+            now = time.perf_counter()
+            if now < t_next:
+                time.sleep(t_next - now)
+            t_next += period
+            e.on_attitude(att)
+            e.on_altimeter(alt)
+            tc = time.perf_counter()
+            pe = e.on_frames({"nadir": frame})
+            lat.append(time.perf_counter() - tc)
+            if pe is not None and pe.is_sendable():
+                errs.append(float(np.linalg.norm(pe.p_body_in_world_m - sim.p_true[k])))
+        e.close()
+        lt = np.array(lat) * 1e3
+        out[mode] = {
+            "fps": float(1e3 / lt.mean()),
+            "mean_ms": float(lt.mean()),
+            "p50_ms": float(np.percentile(lt, 50)),
+            "p99_ms": float(np.percentile(lt, 99)),
+            "max_ms": float(lt.max()),
+            "over_budget_frames": int((lt > 1e3 * period).sum()),
+            "mean_error_m": float(np.mean(errs)) if errs else float("nan"),
+        }
     return out
 
 
@@ -279,10 +334,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--forward-s", type=float, default=None, help="forward flight duration")
     p.add_argument("--scanning-s", type=float, default=None, help="scanning flight duration")
     p.add_argument("--scenes", default=None, help="comma-separated scene ids for Table 7 (default all nine)")
-    p.add_argument("--tables", default="4,5,7", help="which tables to run")
+    p.add_argument("--tables", default="4,5,7,t", help="which tables to run (t = per-frame timing run)")
+    p.add_argument("--timing-s", type=float, default=None, help="timing run duration")
     p.add_argument("--plot", type=Path, default=Path("bench/results/terrain_slam_drift.png"))
     a = p.parse_args(argv)
-    circ_s = a.circular_s or (40.0 if a.quick else 190.0)
+    circ_s = a.circular_s or (30.0 if a.quick else 190.0)
     fwd_s = a.forward_s or (40.0 if a.quick else 110.0)
     scan_s = a.scanning_s or (40.0 if a.quick else 150.0)
     tables = {t.strip() for t in a.tables.split(",")}
@@ -314,7 +370,9 @@ def main(argv: list[str] | None = None) -> int:
         r08["terrain_lba"] = r08["w10"]
     if "4" in tables:
         r = flights[("08", "circular")]
-        rows = {f"{c:g}": _public(r[f"w{c:g}"]) for c in confidences}
+        rows = {
+            f"{c:g}": {"vo_only" if c == 0 else "terrain_lba": _public(r[f"w{c:g}"])} for c in confidences
+        }
         results["table4"] = {
             "scene": "08",
             "trajectory": "circular",
@@ -324,10 +382,11 @@ def main(argv: list[str] | None = None) -> int:
         print(
             table(
                 ["w_G", *HEAD[1:]],
-                [_row(c, v) for c, v in rows.items()],
+                [_row(c, next(iter(v.values()))) for c, v in rows.items()],
                 "Table 4 analogue: scene 08, circular",
             )
         )
+        write_json(a.json, results)
     if "5" in tables:
         t5: dict[str, Any] = {}
         for kind, dur in (("circular", circ_s), ("forward", fwd_s), ("scanning", scan_s)):
@@ -342,6 +401,7 @@ def main(argv: list[str] | None = None) -> int:
         results["table5"] = {"scene": "08", "trajectory": t5}
         rows5 = [_row(f"{k} {m}", v[m]) for k, v in t5.items() for m in ("vo_only", "terrain_lba")]
         print(table(HEAD, rows5, "Table 5 analogue: scene 08, three trajectories"))
+        write_json(a.json, results)
     if "7" in tables:
         t7: dict[str, Any] = {}
         for sid in scenes:
@@ -352,6 +412,8 @@ def main(argv: list[str] | None = None) -> int:
                 "terrain_lba": _public(r["terrain_lba"]),
                 "distance_m": r["_flight"]["distance_m"],
             }
+            results["table7_partial"] = {"scene": t7}
+            write_json(a.json, results)
         summary = {}
         for m in ("vo_only", "terrain_lba"):
             means = [t7[s][m]["mean"] for s in t7]
@@ -363,6 +425,7 @@ def main(argv: list[str] | None = None) -> int:
             }
         summary["total_distance_m"] = float(sum(t7[s]["distance_m"] for s in t7))
         summary["scenes"] = list(t7)
+        results.pop("table7_partial", None)
         results["table7"] = {"trajectory": "circular", "scene": t7, "summary": summary}
         rows7 = [_row(f"{s} {m}", t7[s][m]) for s in t7 for m in ("vo_only", "terrain_lba")]
         print(table(HEAD, rows7, "Table 7 analogue: all scenes, circular, Table 6 lighting"))
@@ -372,6 +435,34 @@ def main(argv: list[str] | None = None) -> int:
             f"(worst scene {summary['terrain_lba']['worst_scene_mean_m']:.3f} m); "
             f"total distance {summary['total_distance_m']:.0f} m"
         )
+    if "t" in tables:
+        dur = a.timing_s or (10.0 if a.quick else 60.0)
+        print(
+            f"  timing: scene 08 circular {dur:.0f}s at {CAMERA_HZ:.0f} Hz, one estimator, back-end running",
+            flush=True,
+        )
+        tm = timing_run(FlightSpec("08", "circular", dur, a.seed))
+        results["timing"] = tm
+        print(
+            table(
+                ["mode", "fps", "mean/ms", "p50/ms", "p99/ms", "max/ms", "over 66 ms", "err/m"],
+                [
+                    [
+                        m,
+                        tm[m]["fps"],
+                        tm[m]["mean_ms"],
+                        tm[m]["p50_ms"],
+                        tm[m]["p99_ms"],
+                        tm[m]["max_ms"],
+                        tm[m]["over_budget_frames"],
+                        tm[m]["mean_error_m"],
+                    ]
+                    for m in ("when_ready", "fixed_delay")
+                ],
+                "Per-frame path at 15 Hz with the LBA running (terrain_lba, worker-process back-end)",
+            )
+        )
+        write_json(a.json, results)
     plot_flights = [(f"{s} {k}", r) for (s, k), r in flights.items() if k == "circular" and s == "08"]
     plot_flights += [(f"{s} {k}", r) for (s, k), r in flights.items() if not (k == "circular" and s == "08")][
         :2
