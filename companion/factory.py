@@ -32,11 +32,17 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
     yaw0 = float(np.radians(cfg.estimator.initial_yaw_deg))
     if kind == "georef":
         from companion.estimators.georef_cv import GeorefEstimator, GeorefEstimatorOptions
-        from companion.georef.georef import GeoReferencer
+        from companion.georef.georef import GeoReferencer, GeorefOptions
 
         cam = cfg.cameras["nadir"]
-        geo = GeoReferencer(load_configured_dem(cfg), sun, cam.intrinsics(), cam.R_body_cam())
         g = cfg.estimator.georef
+        geo = GeoReferencer(
+            load_configured_dem(cfg),
+            sun,
+            cam.intrinsics(),
+            cam.R_body_cam(),
+            GeorefOptions(min_quality=g.matcher_min_quality),
+        )
         opt = GeorefEstimatorOptions(
             min_quality=g.min_quality,
             attitude_sigma_rad=float(np.radians(g.attitude_sigma_deg)),
