@@ -326,7 +326,7 @@ class Backend:
             outlier_lm=out_lm,
             cov_newest=cov_newest,
             geo=geo,
-            counters=dict(self.counters),
+            counters={**self.counters, **{f"fix_failed_{r}": n for r, n in self.fail_reasons.items()}},
             lba_ok=sol.ok,
             lba_iterations=sol.iterations,
             ms_geo=(t1 - t0) * 1e3,
