@@ -41,7 +41,7 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], title: str | No
         if isinstance(v, float | np.floating):
             if not np.isfinite(v):
                 return "-"
-            return f"{v:.3f}" if abs(v) < 1000 else f"{v:.0f}"
+            return f"{v:.3f}" if abs(float(v)) < 1000 else f"{v:.0f}"
         return str(v)
 
     cells = [[fmt(v) for v in r] for r in rows]

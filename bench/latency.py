@@ -94,7 +94,7 @@ def run(rate_hz: float, duration_s: float, estimator: str, seed: int) -> dict:
     pub = session.declare_publisher("uav/camera/nadir")
     s0 = states[0]
     yaw0 = float(np.degrees(np.arctan2(s0.R_world_body[1, 0], s0.R_world_body[0, 0])))
-    overrides = {
+    overrides: dict[str, object] = {
         "zenoh.connect": [f"tcp/127.0.0.1:{zport}"],
         "mavlink.connection": f"udpout:127.0.0.1:{mport}",
         "mavlink.max_rate_hz": min(rate_hz, 50.0),
@@ -105,8 +105,7 @@ def run(rate_hz: float, duration_s: float, estimator: str, seed: int) -> dict:
         "daemon.log_level": "warning",
     }
     cmd = [sys.executable, "-m", "companion", "run", "--config", str(ROOT / "configs/sim_mars.toml")]
-    for k, v in overrides.items():
-        cmd += ["--set", f"{k}={json.dumps(v)}"]
+    cmd += [arg for k, v in overrides.items() for arg in ("--set", f"{k}={json.dumps(v)}")]
     log = open(tmp / "companion.log", "w")
     ap.start()
     comp = subprocess.Popen(
