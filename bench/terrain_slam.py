@@ -414,7 +414,7 @@ def main(argv: list[str] | None = None) -> int:
             }
             results["table7_partial"] = {"scene": t7}
             write_json(a.json, results)
-        summary = {}
+        summary: dict[str, Any] = {}
         for m in ("vo_only", "terrain_lba"):
             means = [t7[s][m]["mean"] for s in t7]
             summary[m] = {

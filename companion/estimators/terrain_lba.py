@@ -19,6 +19,7 @@ gives the monocular scale at initialisation and the height above ground of each 
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 from collections import deque
 from dataclasses import dataclass, field, replace
@@ -244,10 +245,8 @@ class TerrainLbaEstimator:
 
     def close(self) -> None:
         if self._proc is not None:
-            try:
+            with contextlib.suppress(OSError, ValueError):  # the pipe may be gone: the worker then exits
                 self._conn.send(None)
-            except (OSError, ValueError):
-                pass  # the pipe is already gone: the worker exits by itself
             self._proc.join(timeout=5.0)
             if self._proc.is_alive():
                 self._proc.terminate()

@@ -42,9 +42,7 @@ class BackendOptions:
     # their centre): with fixes good to ~0.5 m, a shorter base turns the yaw by more than the compass is off
     realign_after_rejections: int = 6  # this many gated fixes in a row that agree with each other:
     # the VO frame is off, not the fixes -> eq. 21 again on them
-    drift_sigma_per_m: float = (
-        0.02  # VO position uncertainty growth per metre since the last adjusted key frame
-    )
+    drift_sigma_per_m: float = 0.02  # VO position sigma growth per metre since the last adjusted key frame
     min_anchors: int = 2  # with fewer anchors (start-up), the oldest window key frames are held: two
     # pinned poses fix the gauge including the monocular scale set by the altimeter
     initial_sigma_m: float = 1.0  # once geo-referenced, a start-up key frame (pinned so far) is held by this
@@ -86,7 +84,8 @@ class BackendResult:
     kf_ids / T_world_cam: solved key frames; lm_ids / p_world: solved points; outlier_kf / outlier_lm:
     observations to drop. cov_newest: (6, 6) Pose3-tangent marginal of the newest key frame (NaN if none).
     geo: dict with the fix outcome ("none", "failed:<reason>", "pending", "accepted", "rejected",
-    "aligned", "realigned"), its quality and residual. counters: running totals. ms_*: compute times.
+    "aligned" (eq. 21, translation, and yaw when the fixes spread enough), "aligned_yaw" (eq. 21 again with
+    the yaw, once they do), "realigned"), its quality and residuals. counters: running totals. ms_*: compute times.
     """
 
     newest_kf: int
@@ -130,6 +129,7 @@ class Backend:
             "alignments": 0,
             "realignments": 0,
             "lba_failed": 0,
+            "marginals_failed": 0,
         }
         self.fail_reasons: dict[str, int] = {}
         self._reset_state()
@@ -305,7 +305,9 @@ class Backend:
             for k in [k for k in d if k < oldest - 200]:
                 del d[k]
         cov_newest = sol.cov[-1] if M else np.full((6, 6), np.nan)
-        if np.all(np.isfinite(cov_newest)):
+        if not np.all(np.isfinite(cov_newest)):
+            self.counters["marginals_failed"] += 1
+        else:
             R = sol.T_world_cam[-1, :3, :3]
             self.cov_pos_newest = R @ cov_newest[3:, 3:] @ R.T
         out_kf = s.kf_ids[s.obs_kf[~sol.obs_inlier]]

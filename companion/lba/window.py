@@ -20,6 +20,7 @@ Pure math: numpy + gtsam.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import gtsam
@@ -141,13 +142,12 @@ def build_graph(
     for i, j, uv in zip(problem.obs_kf, problem.obs_lm, problem.obs_px):
         graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(uv, float), pix, X(int(i)), L(int(j)), cal))
     pinned = gtsam.noiseModel.Isotropic.Sigma(6, options.pinned_sigma)
-    for i in np.flatnonzero(problem.anchor):
-        cov = problem.anchor_cov[i]
+    for ia in np.flatnonzero(problem.anchor):
+        cov = problem.anchor_cov[ia]
+        prior: gtsam.noiseModel.Base = pinned
         if np.all(np.isfinite(cov)):
-            noise = gtsam.noiseModel.Gaussian.Covariance(cov * options.anchor_cov_inflation)
-        else:
-            noise = pinned
-        graph.add(gtsam.PriorFactorPose3(X(int(i)), gtsam.Pose3(problem.T_world_cam[i]), noise))
+            prior = gtsam.noiseModel.Gaussian.Covariance(cov * options.anchor_cov_inflation)
+        graph.add(gtsam.PriorFactorPose3(X(int(ia)), gtsam.Pose3(problem.T_world_cam[ia]), prior))
     if options.gravity_sigma_rad > 0:
         grav = gtsam.noiseModel.Isotropic.Sigma(2, options.gravity_sigma_rad)
         n_ref = gtsam.Unit3(_DOWN_WORLD)
@@ -216,12 +216,11 @@ def solve_window(problem: WindowProblem, options: LbaOptions = LbaOptions()) -> 
             geo_w[i] = float(np.sqrt(r @ np.linalg.solve(problem.geo_cov[i] / options.w_geo, r)))
     cov = np.full((M, 6, 6), np.nan)
     if options.marginals:
-        try:
+        # an indeterminate system leaves them NaN: the caller keeps its previous covariance and says so
+        with contextlib.suppress(RuntimeError):
             marg = gtsam.Marginals(graph, result)
             for i in range(M):
                 cov[i] = marg.marginalCovariance(X(i))
-        except RuntimeError:
-            pass  # left NaN: the caller keeps its previous covariance and says so
     return WindowSolution(T, P, cov, inl, geo_w, float(err0), float(graph.error(result)), int(iters), True)
 
 

@@ -322,6 +322,7 @@ class VisualOdometry:
                 "px0": self._pts.copy(),
             }
             return VoStatus("initialising", None, len(self._pts), 0, None)
+        assert st is not None
         if R_att is None or len(self._ids) < self.opt.init_min_points:
             if len(self._ids) < self.opt.init_min_points:
                 self._init = None  # lost the features: start again
@@ -359,12 +360,11 @@ class VisualOdometry:
         T1 = make_T(R_att, c0 + scale * d)
         X = c0 + scale * (X - c0)
         # two key frames and the first map points
-        kf0 = self._add_kf(st["frame"], st["stamp"], T0, down_in_cam(T0[:3, :3]), st["ids0"], st["px0"])
+        self._add_kf(st["frame"], st["stamp"], T0, down_in_cam(T0[:3, :3]), st["ids0"], st["px0"])
         kf1 = self._add_kf(self.frame_index, stamp_us, T1, down_in_cam(R_att), self._ids, self._pts)
         for t, p in zip(self._ids[ok], X[ok]):
             self.lm[int(t)] = p
             self.lm_born_kf[int(t)] = kf1
-        del kf0
         self.T = T1
         self.state = "tracking"
         self._init = None

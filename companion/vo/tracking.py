@@ -114,7 +114,7 @@ def detect(
     for x, y in np.asarray(existing, float).reshape(-1, 2):
         cv2.circle(mask, (int(round(x)), int(round(y))), options.min_distance_px, 0, -1)
     if options.detector == "orb":
-        orb = cv2.ORB_create(
+        orb = cv2.ORB.create(
             nfeatures=4 * n_wanted,
             fastThreshold=options.orb_fast_threshold,
             edgeThreshold=b,
