@@ -185,3 +185,37 @@ def test_imu_before_the_first_frame_is_bounded():
         slam.add_imu(k * 10_000, np.array([0.0, 0.0, -G]), np.zeros(3))
     assert len(slam._queue) <= 26
     assert slam.latest_imu() is not None
+
+
+def test_sparse_landmark_update_equals_the_dense_update():
+    import copy
+
+    from companion.ekf.landmarks import initialise, project
+
+    rng = np.random.default_rng(4)
+    traj = straight_flight(duration_s=20.0)
+    st = traj.state_at(0.0)
+    f = InverseDepthEkf(EkfOptions(), st.p_world, quat_from_rot(st.R_world_body), st.v_world, G)
+    cam = camera_model()
+    uv = rng.uniform([20, 20], [620, 460], (10, 2))
+    y, Jp, Ju = initialise(uv, np.full(10, 0.01), f.r, f.R_world_body, cam)
+    f.add_landmarks(y, Jp, Ju, 1.0, np.full(10, 0.003), 0)
+    for _ in range(50):  # some propagation so the cross terms are non-trivial
+        f.propagate(np.array([0.1, -0.05, -G]), np.array([0.01, 0.0, -0.02]), 0.01)
+    sel = np.array([1, 4, 5, 8])
+    pr = project(f.y[sel], f.r, f.R_world_body, cam)
+    res = rng.normal(0, 1.0, (4, 2))
+    a, b = copy.deepcopy(f), copy.deepcopy(f)
+    S = a.landmark_innovation_covariances(sel, pr.H_pose, pr.H_lm, 0.8)
+    a.update_landmarks(sel, pr.H_pose, pr.H_lm, res, 0.8)
+    H = np.zeros((8, b.P.shape[0]))
+    for k, i in enumerate(sel):
+        H[2 * k : 2 * k + 2, :6] = pr.H_pose[k]
+        H[2 * k : 2 * k + 2, b.lm_slice(int(i))] = pr.H_lm[k]
+    S_dense = b.innovation_covariance(H, np.eye(8) * 0.64)
+    for k in range(4):
+        np.testing.assert_allclose(S[k], S_dense[2 * k : 2 * k + 2, 2 * k : 2 * k + 2], rtol=1e-10)
+    b.update(H, res.ravel(), np.eye(8) * 0.64)
+    np.testing.assert_allclose(a.P, b.P, atol=1e-12)
+    np.testing.assert_allclose(a.y, b.y, atol=1e-12)
+    np.testing.assert_allclose(a.r, b.r, atol=1e-12)

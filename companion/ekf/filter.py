@@ -184,6 +184,51 @@ class InverseDepthEkf:
         self._inject(dx)
         return dx
 
+    def _landmark_columns(self, lm_index: np.ndarray) -> np.ndarray:
+        """(k,12) error-state columns (dr, dtheta, then the landmark's 6) of each landmark's 2-row block."""
+        lm = VEHICLE_DIM + LANDMARK_DIM * np.asarray(lm_index, int)[:, None] + np.arange(LANDMARK_DIM)
+        return np.concatenate([np.tile(np.arange(6), (len(lm), 1)), lm], axis=1)
+
+    def landmark_innovation_covariances(
+        self, lm_index: np.ndarray, H_pose: np.ndarray, H_lm: np.ndarray, sigma_px: float
+    ) -> np.ndarray:
+        """(k,2,2) S_i = H_i P H_i^T + sigma^2 I of one pixel measurement per landmark, from the 12x12 blocks
+        of P that the sparse H_i touches. H_pose, H_lm: (k,2,6)."""
+        self._flush()
+        cols = self._landmark_columns(lm_index)
+        Pk = self.P[cols[:, :, None], cols[:, None, :]]  # (k,12,12)
+        Hk = np.concatenate([H_pose, H_lm], axis=2)  # (k,2,12)
+        return Hk @ Pk @ Hk.transpose(0, 2, 1) + np.eye(2) * sigma_px**2
+
+    def update_landmarks(
+        self,
+        lm_index: np.ndarray,
+        H_pose: np.ndarray,
+        H_lm: np.ndarray,
+        residual: np.ndarray,
+        sigma_px: float,
+    ) -> np.ndarray:
+        """Batch update with one pixel measurement (2 rows) per landmark; same result as ``update`` with the
+        dense H, computed from the sparse blocks (P H^T by gathering 12 columns per landmark).
+
+        lm_index: (k,); H_pose, H_lm: (k,2,6); residual: (k,2) z - h. Returns the correction."""
+        self._flush()
+        k = len(lm_index)
+        cols = self._landmark_columns(lm_index)  # (k,12)
+        Hk = np.concatenate([H_pose, H_lm], axis=2)  # (k,2,12)
+        n = self.P.shape[0]
+        # P H^T: (n, 2k); column pair i = P[:, cols_i] @ Hk_i^T
+        PHt = np.einsum("nkc,kic->nki", self.P[:, cols.ravel()].reshape(n, k, 12), Hk).reshape(n, 2 * k)
+        # S = H P H^T + R: row pair i = Hk_i @ PHt[cols_i, :]
+        S = np.einsum("kic,kcm->kim", Hk, PHt[cols]).reshape(2 * k, 2 * k) + np.eye(2 * k) * sigma_px**2
+        S = 0.5 * (S + S.T)
+        K = np.linalg.solve(S, PHt.T).T
+        dx = K @ residual.reshape(2 * k)
+        self.P = self.P - K @ PHt.T
+        self.P = 0.5 * (self.P + self.P.T)
+        self._inject(dx)
+        return dx
+
     def innovation_covariance(self, H: np.ndarray, R_meas: np.ndarray) -> np.ndarray:
         """S = H P H^T + R for a candidate measurement (m, m)."""
         self._flush()

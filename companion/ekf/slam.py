@@ -223,13 +223,13 @@ class VisThermalSlam:
         R_wb = ekf.R_world_body
         matched_count = dict.fromkeys(self.camera_names, 0)
         # --- predict and match, per camera -------------------------------------------------------
-        rows_H: list[np.ndarray] = []
+        rows_lm: list[int] = []
+        rows_Hp: list[np.ndarray] = []
+        rows_Hl: list[np.ndarray] = []
         rows_res: list[np.ndarray] = []
-        n = ekf.P.shape[0]
         keep = np.ones(ekf.n_landmarks, bool)
         used_kp: dict[str, np.ndarray] = {}
         tracked_uv: dict[str, list[np.ndarray]] = {c: [] for c in self.camera_names}
-        P = ekf.covariance()
         for ci, cam_name in enumerate(self.camera_names):
             cam = self.cameras[cam_name]
             det = detections.get(cam_name)
@@ -260,14 +260,9 @@ class VisThermalSlam:
             vis = np.flatnonzero(inside)
             if len(vis) == 0:
                 continue
-            # innovation covariances S_i = H_i P H_i^T + R (2x2 each), vectorised
+            # innovation covariances S_i = H_i P H_i^T + R (2x2 each), from the sparse blocks
             gi = idx[vis]
-            Hs = np.zeros((len(vis), 2, n))
-            Hs[:, :, :6] = proj.H_pose[vis]
-            for k, li in enumerate(gi):
-                Hs[k, :, ekf.lm_slice(int(li))] = proj.H_lm[vis[k]]
-            HP = np.einsum("kin,nm->kim", Hs, P)
-            S = np.einsum("kim,kjm->kij", HP, Hs) + np.eye(2) * o.pixel_sigma_px**2
+            S = ekf.landmark_innovation_covariances(gi, proj.H_pose[vis], proj.H_lm[vis], o.pixel_sigma_px)
             lm_desc = np.stack([self._desc[int(ekf.lm_id[li])] for li in gi])
             match = match_predicted(
                 proj.uv[vis], S, lm_desc, det, o.gate_chi2, o.max_descriptor_distance, o.descriptor_ratio
@@ -276,7 +271,9 @@ class VisThermalSlam:
                 lid = int(ekf.lm_id[li])
                 j = match[k]
                 if j >= 0:
-                    rows_H.append(Hs[k])
+                    rows_lm.append(int(li))
+                    rows_Hp.append(proj.H_pose[vis[k]])
+                    rows_Hl.append(proj.H_lm[vis[k]])
                     rows_res.append(det.uv[j] - proj.uv[vis[k]])
                     used[j] = True
                     self._desc[lid] = det.desc[j]
@@ -291,10 +288,10 @@ class VisThermalSlam:
                     else:
                         tracked_uv[cam_name].append(proj.uv[vis[k]])
         # --- batch update with every camera's matches (one map, eq. 7) ---------------------------
-        if rows_H:
-            H = np.concatenate(rows_H, axis=0)
-            res = np.concatenate(rows_res)
-            ekf.update(H, res, np.eye(len(res)) * o.pixel_sigma_px**2)
+        if rows_lm:
+            ekf.update_landmarks(
+                np.array(rows_lm), np.stack(rows_Hp), np.stack(rows_Hl), np.stack(rows_res), o.pixel_sigma_px
+            )
         for ci, cam_name in enumerate(self.camera_names):
             self.counters.matches[cam_name] += matched_count[cam_name]
             self.counters.landmarks_deleted[cam_name] += int(np.sum(~keep & (ekf.lm_cam == ci)))
