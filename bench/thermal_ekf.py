@@ -21,7 +21,8 @@ E and I, as the paper's "Average" row; because E is a regression slope it can be
 a good run, where a per-trajectory I explodes, so I is also given on the trajectory-averaged E
 ("I_..._of_mean_E", the "of avg E" row).
 pairs_per_s: frame pairs per second through the dual estimator's daemon path (``on_frames``: SIFT on both
-images in two threads, then the filter step), measured after the trials on 40 pre-rendered pairs; the
+images in two threads, then the filter step), measured after the trials on 60 pre-rendered pairs as
+1 / median time per pair, best of three passes (the mean-based rate and every pass are given beside it); the
 JSON also gives the rate including the IMU/altimeter calls between frames and the rate inside the
 benchmark (two single-threaded workers). This 2-core machine is shared with other jobs: noisy figures.
 """
@@ -242,7 +243,7 @@ def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]
     return {"trajectories": per, "average": avg}
 
 
-def daemon_path_rate(n_pairs: int = 40) -> dict[str, float]:
+def daemon_path_rate(n_pairs: int = 60) -> dict[str, Any]:
     """Frame pairs per second through ``VisThermalEkfEstimator.on_frames`` in dual mode (the daemon's path:
     both SIFT detections in parallel threads, then the filter step), on pre-rendered frames of trajectory 1,
     with IMU and altimeter samples fed between frames as the daemon does. Measured alone (no bench workers)."""
@@ -265,34 +266,44 @@ def daemon_path_rate(n_pairs: int = 40) -> dict[str, float]:
         pairs.append((t_us, {"visible": Frame(t_us, "visible", vis), "thermal": Frame(t_us, "thermal", tir)}))
     intr = cams.intrinsics
     st0 = states[0]
-    est = VisThermalEkfEstimator(
-        BENCH_OPTIONS,
-        {"visible": intr, "thermal": intr},
-        {"visible": R_BODY_CAM_NADIR, "thermal": R_BODY_CAM_NADIR},
-        st0.p_world,
-        st0.v_world,
-        rpy_from_rot(st0.R_world_body),
-        gravity_mps2=GRAVITY_MPS2["europa"],
-    )
-    ii = ia = 0
-    spent_frames = spent_all = 0.0
-    for t_us, fs in pairs:
-        t0 = time.perf_counter()
-        while ii < len(imu.t_us) and imu.t_us[ii] <= t_us:
-            est.on_imu(ImuSample(int(imu.t_us[ii]), imu.accel_mps2[ii], imu.gyro_rps[ii]))
-            ii += 1
-        while ia < len(alt_t) and alt_t[ia] <= t_us:
-            if np.isfinite(alt_r[ia]):
-                est.on_altimeter(AltimeterSample(int(alt_t[ia]), float(alt_r[ia])))
-            ia += 1
-        t1 = time.perf_counter()
-        est.on_frames(fs)
-        t2 = time.perf_counter()
-        spent_frames += t2 - t1
-        spent_all += t2 - t0
-    est.close()
-    n = len(pairs)
-    return {"pairs_per_s": n / spent_frames, "pairs_per_s_with_imu": n / spent_all, "pairs": n}
+    passes = []
+    for _ in range(3):  # best of three passes: the other jobs on this machine only ever slow us down
+        est = VisThermalEkfEstimator(
+            BENCH_OPTIONS,
+            {"visible": intr, "thermal": intr},
+            {"visible": R_BODY_CAM_NADIR, "thermal": R_BODY_CAM_NADIR},
+            st0.p_world,
+            st0.v_world,
+            rpy_from_rot(st0.R_world_body),
+            gravity_mps2=GRAVITY_MPS2["europa"],
+        )
+        ii = ia = 0
+        per_pair, per_pair_all = [], []
+        for t_us, fs in pairs:
+            t0 = time.perf_counter()
+            while ii < len(imu.t_us) and imu.t_us[ii] <= t_us:
+                est.on_imu(ImuSample(int(imu.t_us[ii]), imu.accel_mps2[ii], imu.gyro_rps[ii]))
+                ii += 1
+            while ia < len(alt_t) and alt_t[ia] <= t_us:
+                if np.isfinite(alt_r[ia]):
+                    est.on_altimeter(AltimeterSample(int(alt_t[ia]), float(alt_r[ia])))
+                ia += 1
+            t1 = time.perf_counter()
+            est.on_frames(fs)
+            t2 = time.perf_counter()
+            per_pair.append(t2 - t1)
+            per_pair_all.append(t2 - t0)
+        est.close()
+        # per pass: 1 / median time per pair (robust to preemption); the mean is kept beside it
+        passes.append(
+            {
+                "pairs_per_s": 1.0 / float(np.median(per_pair)),
+                "pairs_per_s_mean": 1.0 / float(np.mean(per_pair)),
+                "pairs_per_s_with_imu": 1.0 / float(np.median(per_pair_all)),
+            }
+        )
+    best = max(passes, key=lambda r: r["pairs_per_s"])
+    return {**best, "pairs": len(pairs), "passes": passes}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -302,6 +313,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--runs-log", type=Path, default=None, help="append each finished trial here (JSON lines)")
     p.add_argument("--from-runs", type=Path, default=None, help="summarise a runs log instead of running")
+    p.add_argument(
+        "--trials-wall-s", type=float, default=None, help="with --from-runs: wall time of those runs"
+    )
     a = p.parse_args(argv)
     names = (
         a.trajectories.split(",")
@@ -332,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         for j in jobs:
             done(_run_job(j))
-    wall = time.perf_counter() - t0
+    wall = time.perf_counter() - t0 if a.from_runs is None else a.trials_wall_s
     s = summarise(results, names)
     per, avg = s["trajectories"], s["average"]
     rows1 = [[k, per[k]["trials"], per[k]["visible"]["E_percent"], per[k]["thermal"]["E_percent"], per[k]["dual"]["E_percent"],
@@ -359,7 +373,9 @@ def main(argv: list[str] | None = None) -> int:
     rate = daemon_path_rate()
     timing = {
         "pairs_per_s": rate["pairs_per_s"],
+        "pairs_per_s_from_mean_time": rate["pairs_per_s_mean"],
         "pairs_per_s_with_imu_and_altimeter": rate["pairs_per_s_with_imu"],
+        "pairs_per_s_passes": [r["pairs_per_s"] for r in rate["passes"]],
         "pairs_per_s_inside_benchmark": float(1.0 / np.mean(pair_s)),
         "sift_ms_per_pair": float(np.mean([r["sift_s_per_pair"] for r in results]) * 1e3),
         "filter_ms_per_frame": {
@@ -372,11 +388,12 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(
         f"dual estimator, daemon path (on_frames, SIFT in 2 threads): {timing['pairs_per_s']:.1f} frame pairs/s "
-        f"({timing['pairs_per_s_with_imu_and_altimeter']:.1f} with the IMU/altimeter between frames)"
+        f"(1/median; {timing['pairs_per_s_from_mean_time']:.1f} from the mean time; "
+        f"{timing['pairs_per_s_with_imu_and_altimeter']:.1f} with the IMU/altimeter between frames)"
     )
     print(f"inside the benchmark ({a.workers} workers, 1 thread each): {timing['pairs_per_s_inside_benchmark']:.1f} pairs/s "
           f"(SIFT {timing['sift_ms_per_pair']:.0f} ms/pair, dual filter {timing['filter_ms_per_frame']['dual']:.0f} ms/frame); "
-          f"benchmark wall {wall:.0f} s; machine shared with other jobs")  # fmt: skip
+          f"trials wall {wall if wall is None else round(wall)} s; machine shared with other jobs")  # fmt: skip
     doc = {
         "benchmark": "thermal_ekf",
         "quick": a.quick,
@@ -390,6 +407,7 @@ def main(argv: list[str] | None = None) -> int:
             "seed": a.seed,
             "E": "OLS slope (with intercept) of position-error norm vs distance travelled, percent",
             "cohens_d": "paired: mean(E_a - E_b) / std(E_a - E_b, ddof=1); positive = second better",
+            "summarised_from_runs_log": a.from_runs is not None,
         },
         "trajectories": per,
         "average": avg,
