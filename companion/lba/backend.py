@@ -34,6 +34,10 @@ class BackendOptions:
     geo_sigma_z_m: float = 2.0  # sigma0 of the fix's down component (DEM + altimeter, eq. 18; a 1 % altimeter
     # alone is 1 m at 100 m)
     geo_min_quality: float = 0.0  # extra gate on the phase-correlation peak, on top of the matcher's own
+    geo_quality_ref: float = 0.0  # a fix of lower quality q counts less: its sigma0 grows by q_ref / q
+    # (0 = off; 0.25, the matcher's own floor, measured slightly worse on scenes 05 and 08)
+    pin_rotation_until_yaw_aligned: bool = True  # start-up key frames keep their rotation until the yaw is
+    # aligned (measured: scene 05, 150 s, 21.8 -> 1.5 m: a few biased early fixes had turned the map 4 deg)
     geo_gate_chi2: float = 16.27  # Mahalanobis gate of a fix against the prediction (3 dof, p = 0.001)
     align_min_fixes: int = 3  # eq. 21 alignment once this many key frames have fixes
     align_huber_m: float = 1.0  # robust threshold of the alignment
@@ -136,13 +140,15 @@ class Backend:
 
     def _reset_state(self) -> None:
         self.epoch = -1
-        # fixes by key frame, each (6,): the geo-referenced world point and the camera-frame point it locates
+        # fixes by key frame, each (7,): the geo-referenced world point, the camera-frame point it locates,
+        # and its variance scale (quality)
         self.fixes: dict[int, np.ndarray] = {}  # accepted (world frame)
         self.pending: dict[int, np.ndarray] = {}  # waiting for the first alignment
         self.rejected: dict[int, np.ndarray] = {}  # consecutive gated ones
         self.cov: dict[int, np.ndarray] = {}  # last marginal covariance per key frame
         self.aligned = False
         self.yaw_aligned = False
+        self.startup_kfs: set[int] = set()
         self.cov_pos_newest: np.ndarray | None = None  # world position covariance of the last newest kf
 
     def _fix_cov(self) -> np.ndarray:
@@ -153,7 +159,7 @@ class Backend:
         """(N, 3) where the VO poses put the camera-frame points the fixes locate."""
         idx = {int(k): i for i, k in enumerate(s.kf_ids)}
         T = s.T_world_cam
-        return np.stack([T[idx[k], :3, :3] @ fixes[k][3:] + T[idx[k], :3, 3] for k in kf_ids])
+        return np.stack([T[idx[k], :3, :3] @ fixes[k][3:6] + T[idx[k], :3, 3] for k in kf_ids])
 
     def _try_align(
         self, s: WindowSnapshot, fixes: dict[int, np.ndarray], min_spread_m: float
@@ -196,7 +202,10 @@ class Backend:
         if self.opt.geo_on_ground and job.range_m is not None:
             lever = np.array([0.0, 0.0, float(job.range_m)])
             p_fix = p_fix + R_wc @ (lever - job.p_body_in_cam)
-        entry = np.concatenate([p_fix, lever])
+        var_scale = 1.0
+        if self.opt.geo_quality_ref > 0:
+            var_scale = max(1.0, self.opt.geo_quality_ref / max(float(fix.quality), 1e-3)) ** 2
+        entry = np.concatenate([p_fix, lever, [var_scale]])
         p_pred = R_wc @ lever + job.snapshot.T_world_cam[-1, :3, 3]
         if not self.aligned:
             self.pending[k] = entry
@@ -212,9 +221,15 @@ class Backend:
             self.counters["fix_accepted"] += len(inliers)
             self.pending.clear()
             self.aligned = True
-            init_cov = np.diag([self.opt.initial_sigma_rad**2] * 3 + [self.opt.initial_sigma_m**2] * 3)
+            # start-up key frames become movable by the fixes; their rotation only once the yaw is aligned
+            # too (a few fixes over a short base must not turn the map: they shift it)
+            free = self.yaw_aligned or not self.opt.pin_rotation_until_yaw_aligned
+            sig_rot = self.opt.initial_sigma_rad if free else self.opt.lba.pinned_sigma
+            init_cov = np.diag([sig_rot**2] * 3 + [self.opt.initial_sigma_m**2] * 3)
             for kk in job.snapshot.kf_ids:
-                self.cov.setdefault(int(kk), init_cov)
+                if int(kk) not in self.cov:
+                    self.cov[int(kk)] = init_cov
+                    self.startup_kfs.add(int(kk))
             self.counters["alignments"] += 1
             out["status"] = "aligned"
             return out, T_align
@@ -222,7 +237,7 @@ class Backend:
         P_pred = np.eye(3) * 1e-2 if self.cov_pos_newest is None else self.cov_pos_newest
         P_pred = P_pred + np.eye(3) * (self.opt.drift_sigma_per_m * job.dist_since_prev_kf_m) ** 2
         e = p_fix - p_pred
-        d2 = float(e @ np.linalg.solve(P_pred + self._fix_cov(), e))
+        d2 = float(e @ np.linalg.solve(P_pred + self._fix_cov() * var_scale, e))
         out["mahalanobis2"] = d2
         if d2 <= self.opt.geo_gate_chi2:
             self.fixes[k] = entry
@@ -235,6 +250,13 @@ class Backend:
                 if res is not None and res[2]:
                     T_align = res[0]
                     self.yaw_aligned = True
+                    # the start-up key frames' rotation is released now that the yaw is known
+                    released = np.diag(
+                        [self.opt.initial_sigma_rad**2] * 3 + [self.opt.initial_sigma_m**2] * 3
+                    )
+                    for kk in self.startup_kfs:
+                        if kk in self.cov:
+                            self.cov[kk] = released
                     self.counters["alignments"] += 1
                     out["status"] = "aligned_yaw"
             return out, T_align
@@ -272,12 +294,14 @@ class Backend:
         anchor_cov = np.full((M, 6, 6), np.nan)
         geo_p = np.full((M, 3), np.nan)
         geo_lever = np.zeros((M, 3))
+        geo_cov = np.tile(self._fix_cov(), (M, 1, 1))
         for i, k in enumerate(s.kf_ids):
             k = int(k)
             if anchor[i] and k in self.cov:
                 anchor_cov[i] = self.cov[k]
             if k in self.fixes:
-                geo_p[i], geo_lever[i] = self.fixes[k][:3], self.fixes[k][3:]
+                geo_p[i], geo_lever[i] = self.fixes[k][:3], self.fixes[k][3:6]
+                geo_cov[i] *= self.fixes[k][6]
         problem = WindowProblem(
             T_world_cam=s.T_world_cam,
             anchor=anchor,
@@ -289,7 +313,7 @@ class Backend:
             K=job.K,
             geo_p_world=geo_p,
             geo_lever_cam=geo_lever,
-            geo_cov=np.tile(self._fix_cov(), (M, 1, 1)),
+            geo_cov=geo_cov,
             down_cam=s.down_cam,
         )
         sol = solve_window(problem, self.opt.lba)
@@ -314,7 +338,7 @@ class Backend:
         out_lm = s.lm_ids[s.obs_lm[~sol.obs_inlier]]
         if job.newest_kf in self.fixes and int(s.kf_ids[-1]) == job.newest_kf:
             f = self.fixes[job.newest_kf]
-            p_new = sol.T_world_cam[-1, :3, :3] @ f[3:] + sol.T_world_cam[-1, :3, 3]
+            p_new = sol.T_world_cam[-1, :3, :3] @ f[3:6] + sol.T_world_cam[-1, :3, 3]
             geo["post_residual_m"] = (f[:3] - p_new).tolist()
         return BackendResult(
             newest_kf=job.newest_kf,
