@@ -406,6 +406,8 @@ class TerrainLbaEstimator:
             "keyframe": st.keyframe_id,
             "distance_m": self._dist_m,
             "geo": None if res is None else res.geo.get("status"),
+            # running totals: key frames, fixes accepted / rejected by the gate / failed, alignments
+            "backend": None if res is None else res.counters,
         }
         return PoseEstimate(
             stamp_us=t,

@@ -21,7 +21,8 @@ class TrackerOptions:
     # reject bad tracks)
     fb_max_px: float = 0.5  # forward-backward disagreement above this drops the track
     border_px: int = 8  # tracks closer than this to the image border are dropped
-    detector: str = "gftt"  # "orb" (the paper's choice) or "gftt" (Shi-Tomasi corners)
+    detector: str = "gftt"  # "orb" (the paper's choice) or "gftt" (Shi-Tomasi corners); both tracked by KLT.
+    # Measured on scene 08 (150 s circular): gftt 0.52 m / 8.9 m (terrain LBA / VO only), orb 0.54 / 11.5 m
     max_features: int = 300  # tracks kept alive; new corners fill up to this at key frames
     min_distance_px: int = 15  # minimum spacing between corners (and from existing tracks)
     gftt_quality: float = 0.005  # Shi-Tomasi quality level relative to the strongest corner
