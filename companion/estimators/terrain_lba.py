@@ -164,7 +164,7 @@ class _History:
 class TerrainLbaEstimator:
     """Implements ``companion.types.Estimator`` for one nadir camera."""
 
-    cameras = ("nadir",)
+    cameras: tuple[str, ...] = ("nadir",)
 
     def __init__(
         self,
