@@ -12,7 +12,12 @@ from companion.georef.dem import Dem
 from companion.io.dem_file import load_geotiff_dem
 from sim_bridge.terrain import degrade_dem, make_scene
 
-SRTM = Path("/work/shared/data/srtm_bigtujunga30m_utm11.tif")
+# the real SRTM raster lives in shared/ beside the checkout (as CI lays it out), not in this repository
+_SRTM_NAME = "shared/data/srtm_bigtujunga30m_utm11.tif"
+SRTM = next(
+    (p for p in (Path(__file__).resolve().parents[2] / _SRTM_NAME, Path("/work") / _SRTM_NAME) if p.exists()),
+    Path(__file__).resolve().parents[2] / _SRTM_NAME,
+)
 needs_srtm = pytest.mark.skipif(not SRTM.exists(), reason="shared SRTM test raster not present")
 
 # GeoKeyDirectory: version 1.1.0, 3 keys: GTModelType = projected, GTRasterType (1 area / 2 point),
