@@ -31,7 +31,8 @@ def _add_sim_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start-delay", type=float, default=None, help="s before take-off (sim: 0, demo: 4)")
 
 
-def _sim_config(a: argparse.Namespace, **kw) -> SimConfig:
+def sim_config_from_args(a: argparse.Namespace, **kw) -> SimConfig:
+    """The flight the common options describe (``sim`` and ``demo`` share them)."""
     return SimConfig(
         scene_id=a.scene,
         seed=a.seed,
@@ -48,7 +49,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
     """Run the simulated vehicle; progress as JSON lines on stdout (the demo reads them)."""
     from sim_bridge.sim import SimVehicle, save_result
 
-    cfg = _sim_config(
+    cfg = sim_config_from_args(
         a,
         zenoh_listen=tuple(a.zenoh_listen),
         mavlink=a.mavlink,

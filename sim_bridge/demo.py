@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from companion.io.dem_store import save_dem_npz
-from sim_bridge.sim import SimConfig, make_trajectory
+from sim_bridge.sim import make_trajectory
 
 
 def free_port(kind: int) -> int:
@@ -81,6 +81,7 @@ def plot(run_dir: Path, truth_tum: Path, est_tum: Path, title: str) -> Path:
 
 
 def run_demo(a: argparse.Namespace) -> int:
+    from sim_bridge.cli import sim_config_from_args
     from sim_bridge.terrain import degrade_dem, make_scene
 
     run_dir = Path(a.out or f"runs/demo-{time.strftime('%Y%m%d-%H%M%S')}").resolve()
@@ -91,15 +92,7 @@ def run_demo(a: argparse.Namespace) -> int:
     scene = make_scene(a.scene, seed=a.seed)
     dem, degradation = degrade_dem(scene.dem, seed=a.seed + 7)
     save_dem_npz(run_dir / "dem.npz", dem)
-    cfg = SimConfig(
-        scene_id=a.scene,
-        seed=a.seed,
-        trajectory=a.trajectory,
-        duration_s=a.duration,
-        speed_mps=a.speed,
-        height_agl_m=a.height,
-        camera_rate_hz=a.camera_rate,
-    )
+    cfg = sim_config_from_args(a)
     start = make_trajectory(cfg, float(np.nanmean(scene.dem.height_m))).state_at(0.0)
     yaw0 = float(np.degrees(np.arctan2(start.R_world_body[1, 0], start.R_world_body[0, 0])))
     p0 = [round(float(v), 3) for v in start.p_world]

@@ -6,11 +6,11 @@ import os
 import socket
 import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pytest
+from netutil import free_port, wait_for
 from pymavlink.dialects.v20 import ardupilotmega as mav2
 
 from companion.io.mavlink import covariance_to_urt21, quaternion_from_rpy
@@ -25,21 +25,6 @@ from sim_bridge.autopilot_link import (
     SimAutopilotOptions,
     hover_truth,
 )
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for(cond: Callable[[], Any], timeout_s: float = 5.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return bool(cond())
 
 
 class Gcs:
@@ -100,13 +85,18 @@ def vpe(gcs: Gcs, usec: int, p=(1.0, 2.0, -30.0), rpy=(0.0, 0.0, 0.5), cov=None,
 
 def test_telemetry_rates_and_content(sim_and_gcs) -> None:
     sim, gcs = sim_and_gcs
-    time.sleep(1.5)
-    counts = {
-        n: len(gcs.of(n)) for n in ("HEARTBEAT", "ATTITUDE", "HIGHRES_IMU", "DISTANCE_SENSOR", "SYSTEM_TIME")
+    need = {"HEARTBEAT": 1, "SYSTEM_TIME": 2, "ATTITUDE": 60, "HIGHRES_IMU": 60, "DISTANCE_SENSOR": 25}
+    # wait for the counts rather than sleeping a fixed time: a starved machine is slow, not wrong
+    assert wait_for(lambda: all(len(gcs.of(n)) >= k for n, k in need.items()), timeout_s=15.0), {
+        n: len(gcs.of(n)) for n in need
     }
-    assert counts["HEARTBEAT"] >= 1 and counts["SYSTEM_TIME"] >= 2
-    assert counts["ATTITUDE"] > 40 and counts["HIGHRES_IMU"] > 40  # 50 Hz nominal, loaded machine margin
-    assert counts["DISTANCE_SENSOR"] > 15
+    # rates from the autopilot's own clock: median spacing of ATTITUDE (50 Hz) and DISTANCE_SENSOR (20 Hz)
+    att_ms = np.diff([m.time_boot_ms for m in gcs.of("ATTITUDE")])
+    rng_ms = np.diff([m.time_boot_ms for m in gcs.of("DISTANCE_SENSOR")])
+    assert 15 <= np.median(att_ms) <= 25 and 40 <= np.median(rng_ms) <= 60, (
+        np.median(att_ms),
+        np.median(rng_ms),
+    )
     hb = gcs.of("HEARTBEAT")[0]
     assert hb.type == mav2.MAV_TYPE_QUADROTOR and hb.autopilot == mav2.MAV_AUTOPILOT_ARDUPILOTMEGA
     # No origin without GPS until one is set: no GLOBAL_POSITION_INT yet.
@@ -117,7 +107,7 @@ def test_telemetry_rates_and_content(sim_and_gcs) -> None:
     assert abs(np.mean([m.roll for m in att])) < 0.01 and np.std([m.roll for m in att]) > 0
     boot_ms = [m.time_boot_ms for m in gcs.of("SYSTEM_TIME")]
     assert 42_000 <= boot_ms[0] < 45_000 and boot_ms == sorted(boot_ms)
-    assert sim.heartbeats_from[(1, 197)] == 1
+    assert sim.heartbeats_from[(1, 197)] >= 1
 
 
 def test_reboot_restarts_boot_clock(sim_and_gcs) -> None:

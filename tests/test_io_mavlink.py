@@ -7,12 +7,12 @@ import socket
 import tempfile
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from netutil import free_port, wait_for
 from pymavlink.dialects.v20 import ardupilotmega as mav2
 
 from companion.io.mavlink import (
@@ -38,21 +38,6 @@ from sim_bridge.autopilot_link import SimAutopilotLink, SimAutopilotOptions
 
 KEY = bytes(range(32))
 FAST_BACKOFF = Backoff(min_s=0.02, max_s=0.2)
-
-
-def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for(cond: Callable[[], Any], timeout_s: float = 5.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return bool(cond())
 
 
 def estimate(stamp_us: int, **kw: Any) -> PoseEstimate:

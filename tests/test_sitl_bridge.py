@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from netutil import free_port, wait_for
 
 from companion.cli import apply_overrides
 from companion.config import load_config
@@ -31,21 +32,6 @@ OFFSET_NE = (10.0, -5.0)
 ALT_M = 60.0
 V_NE = np.array([3.0, 1.0])
 YAW0, YAW_RATE, PITCH = 0.4, 0.1, 0.05
-
-
-def free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def wait_for(cond, timeout_s: float = 5.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return bool(cond())
 
 
 @pytest.fixture(scope="module")
