@@ -28,7 +28,13 @@ def _add_sim_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed", type=float, default=d.speed_mps, help="m/s (default %(default)s)")
     p.add_argument("--height", type=float, default=d.height_agl_m, help="m above mean ground")
     p.add_argument("--camera-rate", type=float, default=d.camera_rate_hz, help="Hz (default %(default)s)")
-    p.add_argument("--start-delay", type=float, default=None, help="s before take-off (sim: 0, demo: 4)")
+    p.add_argument("--start-delay", type=float, default=None, help="s before take-off (sim: 0, demo: 2)")
+    p.add_argument(
+        "--wait-companion",
+        type=float,
+        default=0.0,
+        help="wait up to this many s for a companion's HEARTBEAT before the start delay",
+    )
 
 
 def sim_config_from_args(a: argparse.Namespace, **kw) -> SimConfig:
@@ -57,6 +63,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
         out_dir=a.out,
         drop_every=a.drop_every,
         start_delay_s=a.start_delay or 0.0,
+        wait_companion_s=a.wait_companion,
     )
 
     def progress(rep: dict) -> None:

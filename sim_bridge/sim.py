@@ -51,6 +51,7 @@ class SimConfig:
     progress_period_s: float = 2.0
     drop_every: int = 0  # publish only; skip every n-th frame (tests of dropped frames); 0 = none
     start_delay_s: float = 0.0  # autopilot up, camera silent: time for a companion to connect and sync
+    wait_companion_s: float = 0.0  # before that, wait (at most this long) for a companion's HEARTBEAT
 
 
 def make_trajectory(cfg: SimConfig, ground_m: float) -> Trajectory:
@@ -151,6 +152,12 @@ class SimVehicle:
         )
         publisher = session.declare_publisher(cfg.camera_key)
         self.autopilot.start()
+        # take off once a companion is heard (its heartbeat starts only when its estimator is ready)
+        deadline = time.monotonic() + cfg.wait_companion_s
+        while time.monotonic() < deadline and not self._stop.is_set():
+            if any(compid != self.autopilot.compid for _, compid in self.autopilot.heartbeats_from):
+                break
+            time.sleep(0.05)
         self._stop.wait(cfg.start_delay_s)
         self.t0_us = time.time_ns() // 1000
         period_us = int(1e6 / cfg.camera_rate_hz)
