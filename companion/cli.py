@@ -11,6 +11,7 @@ Exit codes: 0 clean stop, 2 configuration error, 1 failure at start-up.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import signal
@@ -26,10 +27,8 @@ log = logging.getLogger("companion")
 
 def _parse_value(text: str) -> Any:
     """A TOML value (``3``, ``"udpout:..."``, ``[1, 2]``, ``true``) or, failing that, JSON, else the bare string."""
-    try:
+    with contextlib.suppress(tomllib.TOMLDecodeError):
         return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        pass
     try:
         return json.loads(text)
     except json.JSONDecodeError:

@@ -6,6 +6,7 @@ way an operator would: through its Zenoh status topic and through what the autop
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import select
@@ -255,13 +256,11 @@ class PtyBridge:
                     continue
                 if not self.connected.is_set():
                     continue  # cable pulled: bytes are lost both ways
-                try:
+                with contextlib.suppress(OSError):  # the peer went away: the byte is lost, as on a cable
                     if fd == self.master:
                         self.sock.send(data)
                     else:
                         os.write(self.master, data)
-                except OSError:
-                    pass
 
     def close(self) -> None:
         self._stop.set()
