@@ -110,8 +110,8 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     def frame_counters() -> dict[str, Any]:
         st = subscriber.stats()
         return {
+            # decode failures and stamp refusals, by camera and reason
             "decode_errors": {f"{cam}:{r}": n for cam, s in st.items() for r, n in s["errors"].items()},
-            "stamp_rejects": {},
             "per_camera": st,
         }
 

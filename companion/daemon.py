@@ -245,7 +245,7 @@ class Daemon:
     def status_line(self, st: dict[str, Any] | None = None) -> str:
         st = self.status() if st is None else st
         link = st["link"]
-        reasons = {**st["frames"].get("decode_errors", {}), **st["frames"].get("stamp_rejects", {})}
+        reasons = st["frames"].get("decode_errors", {})
         bad = sum(reasons.values())
         bad_s = f"{bad}" + (f" ({', '.join(f'{k} {v}' for k, v in sorted(reasons.items()))})" if bad else "")
         not_sent = sum(v for k, v in st["not_sent"].items() if k != "no_estimate")
