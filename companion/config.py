@@ -114,7 +114,6 @@ class GeorefEstimatorConfig(_Strict):
     # the matcher's own threshold on its peak; low enough that the filter's innovation gate, not the
     # matcher, rejects the outliers (the matcher's covariance grows as the quality falls)
     matcher_min_quality: Annotated[float, Field(ge=0, le=1)] = 0.15
-    min_quality: Annotated[float, Field(ge=0, le=1)] = 0.0
     attitude_sigma_deg: Annotated[float, Field(gt=0)] = 2.0
     max_coast_s: Annotated[float, Field(gt=0)] = 2.0
 

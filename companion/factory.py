@@ -44,7 +44,6 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             GeorefOptions(min_quality=g.matcher_min_quality),
         )
         opt = GeorefEstimatorOptions(
-            min_quality=g.min_quality,
             attitude_sigma_rad=float(np.radians(g.attitude_sigma_deg)),
             max_coast_s=g.max_coast_s,
         )

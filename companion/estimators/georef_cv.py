@@ -27,7 +27,6 @@ from companion.types import (
 
 @dataclass(frozen=True)
 class GeorefEstimatorOptions:
-    min_quality: float = 0.0  # extra gate on the phase-correlation peak, on top of the matcher's own
     accel_sigma_mps2: float = (
         2.0  # horizontal white-acceleration process noise of the constant-velocity model
     )
@@ -208,13 +207,13 @@ class GeorefEstimator:
         p_pred = self._x[:3].copy()
         fix = self.geo.locate(frame.image, R, p_pred, alt_agl_m=agl)
         accepted = False
-        if fix.ok and fix.quality >= self.opt.min_quality:
+        if fix.ok:
             accepted = self._update(fix)
             if accepted:
                 self._last_fix_us = t
                 self.counters["fixes"] += 1
         else:
-            reason = fix.reason or "low_quality"
+            reason = fix.reason
             self.no_fix_reasons[reason] = self.no_fix_reasons.get(reason, 0) + 1
             self.counters["no_fix"] += 1
         if (t - self._last_fix_us) * 1e-6 > self.opt.max_coast_s:
