@@ -23,7 +23,18 @@ from typing import Any, Protocol
 import numpy as np
 
 from companion.handoff import FrameHandoff
-from companion.types import AltimeterSample, AttitudeSample, Estimator, Frame, ImuSample, PoseEstimate
+from companion.types import (
+    AltimeterSample,
+    AttitudeSample,
+    Estimator,
+    Frame,
+    ImuSample,
+    LocalPositionSample,
+    PoseEstimate,
+)
+
+Sample = AttitudeSample | ImuSample | AltimeterSample | LocalPositionSample
+"""What the autopilot link delivers to the estimator thread."""
 
 log = logging.getLogger("companion")
 
@@ -36,7 +47,9 @@ def now_us() -> int:
 class AutopilotLink(Protocol):
     """What the daemon needs from the MAVLink side (``companion.io.autopilot.AutopilotLinkAdapter``)."""
 
-    def start(self, on_attitude: Callable, on_imu: Callable, on_altimeter: Callable) -> None: ...
+    def start(
+        self, on_attitude: Callable, on_imu: Callable, on_altimeter: Callable, on_local_position: Callable
+    ) -> None: ...
 
     def send_estimate(self, estimate: PoseEstimate) -> str | None:
         """Send; return None when sent, else the reason it was not (e.g. 'no_timesync', 'link_down')."""
@@ -102,7 +115,7 @@ class Daemon:
         self.frame_counters = frame_counters or (lambda: {})
         self.counters = DaemonCounters()
         self.latency = LatencyWindow()
-        self._inbox: deque[AttitudeSample | ImuSample | AltimeterSample] = deque()
+        self._inbox: deque[Sample] = deque()
         self._inbox_size = inbox_size
         self._inbox_lock = threading.Lock()
         self._stop = threading.Event()
@@ -114,7 +127,7 @@ class Daemon:
         self.last_estimate: PoseEstimate | None = None
 
     # -- inputs from the link thread -----------------------------------------------------------------
-    def _enqueue(self, sample: AttitudeSample | ImuSample | AltimeterSample) -> None:
+    def _enqueue(self, sample: Sample) -> None:
         with self._inbox_lock:
             if len(self._inbox) >= self._inbox_size:
                 self._inbox.popleft()
@@ -130,12 +143,14 @@ class Daemon:
                 self.estimator.on_attitude(s)
             elif isinstance(s, ImuSample):
                 self.estimator.on_imu(s)
-            else:
+            elif isinstance(s, AltimeterSample):
                 self.estimator.on_altimeter(s)
+            else:
+                self.estimator.on_local_position(s)
 
     # -- lifecycle ----------------------------------------------------------------------------------
     def start(self) -> None:
-        self.link.start(self._enqueue, self._enqueue, self._enqueue)
+        self.link.start(self._enqueue, self._enqueue, self._enqueue, self._enqueue)
         for target, name in ((self._estimator_loop, "estimator"), (self._status_loop, "status")):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -224,6 +239,7 @@ class Daemon:
             "frames_received": h.received,
             "frames_dropped_stale": h.dropped_stale,
             "frames_dropped_unpaired": h.dropped_unpaired,
+            "frame_sets": h.taken,
             "estimates": self.counters.estimates,
             "sent": self.counters.sent,
             "not_sent": dict(self.counters.not_sent),

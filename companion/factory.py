@@ -79,12 +79,15 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             mode=e.mode, max_landmarks_per_camera=e.max_landmarks_per_camera, sampling=e.sampling
         )
         planet = cfg.origin.planet if cfg.origin is not None else "europa"
+        p0 = cfg.estimator.initial_position_ned_m
+        # no configured start: the filter starts from the autopilot's LOCAL_POSITION_NED (a hand-over from
+        # the vehicle's navigation); velocity from it too, attitude from ATTITUDE (yaw0 without one)
         return VisThermalEkfEstimator(
             ekf_opt,
             {c: cfg.cameras[c].intrinsics() for c in cams},
             {c: cfg.cameras[c].R_body_cam() for c in cams},
-            _initial_position(cfg),
-            initial_rpy=np.array([0.0, 0.0, yaw0]),
+            None if p0 is None else np.asarray(p0, float),
+            initial_yaw_rad=yaw0,
             gravity_mps2=GRAVITY_MPS2[planet],
         )
     raise ValueError(f"unknown estimator kind {kind!r}")

@@ -55,6 +55,19 @@ class AltimeterSample:
     range_m: float
 
 
+@dataclass(frozen=True)
+class LocalPositionSample:
+    """The autopilot's own position and velocity estimate (LOCAL_POSITION_NED) in the world NED frame.
+
+    p_ned_m: (3,) metres; v_ned_mps: (3,) m/s. An estimator may start from it (the vision takes over from
+    the vehicle's navigation); it is never an input afterwards (it would echo our own estimates back).
+    """
+
+    stamp_us: int
+    p_ned_m: np.ndarray
+    v_ned_mps: np.ndarray
+
+
 class EstimateStatus(StrEnum):
     OK = "ok"
     INITIALISING = "initialising"
@@ -108,6 +121,8 @@ class Estimator(Protocol):
     def on_imu(self, sample: ImuSample) -> None: ...
 
     def on_altimeter(self, sample: AltimeterSample) -> None: ...
+
+    def on_local_position(self, sample: LocalPositionSample) -> None: ...
 
     def on_frames(self, frames: dict[str, Frame]) -> PoseEstimate | None: ...
 

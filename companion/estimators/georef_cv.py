@@ -21,6 +21,7 @@ from companion.types import (
     EstimateStatus,
     Frame,
     ImuSample,
+    LocalPositionSample,
     PoseEstimate,
 )
 
@@ -107,6 +108,9 @@ class GeorefEstimator:
 
     def on_imu(self, s: ImuSample) -> None:
         """Not used by this estimator (the constant-velocity model needs no IMU)."""
+
+    def on_local_position(self, s: LocalPositionSample) -> None:
+        """Not used: the position comes from the terrain fixes (the configured start is the prior)."""
 
     def on_altimeter(self, s: AltimeterSample) -> None:
         if np.isfinite(s.range_m) and s.range_m > 0:

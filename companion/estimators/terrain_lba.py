@@ -39,6 +39,7 @@ from companion.types import (
     EstimateStatus,
     Frame,
     ImuSample,
+    LocalPositionSample,
     PoseEstimate,
 )
 from companion.vo.odometry import VisualOdometry, VoOptions
@@ -238,6 +239,9 @@ class TerrainLbaEstimator:
 
     def on_imu(self, s: ImuSample) -> None:
         """Not used: attitude comes from ATTITUDE, motion from the images."""
+
+    def on_local_position(self, s: LocalPositionSample) -> None:
+        """Not used: the configured start and the terrain fixes give the position."""
 
     def on_altimeter(self, s: AltimeterSample) -> None:
         if np.isfinite(s.range_m) and s.range_m > 0:

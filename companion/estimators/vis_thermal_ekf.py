@@ -34,6 +34,7 @@ from companion.types import (
     EstimateStatus,
     Frame,
     ImuSample,
+    LocalPositionSample,
     PoseEstimate,
 )
 
@@ -55,20 +56,31 @@ class VisThermalEkfEstimator:
 
     intrinsics / R_body_cam / p_cam_in_body: per camera name ("visible", "thermal"); the cameras of
     ``options.mode`` must be present. The two cameras may share the pose (paper 2: co-registered) or
-    have their own extrinsics. initial_rpy: if None, the first ATTITUDE sample, else gravity from the
-    IMU with yaw 0. The filter starts at the first frame set's stamp.
+    have their own extrinsics. The filter starts at the first frame set's stamp, from:
+    - position: ``initial_p_world``, or if None the autopilot's LOCAL_POSITION_NED (``on_local_position``,
+      extrapolated to the frame's stamp with its velocity): the vision takes over from the vehicle's own
+      navigation, and until the autopilot has sent one the frames are counted in ``waiting_for_position``;
+    - velocity: ``initial_v_world``, or if None the autopilot's LOCAL_POSITION_NED velocity, else zero;
+    - attitude: ``initial_rpy``, or if None the latest ATTITUDE sample, else gravity from the IMU with
+      yaw ``initial_yaw_rad``.
+    A LOCAL_POSITION_NED sample older than ``max_local_position_age_s`` at the frame is not used.
     """
+
+    max_local_position_age_s = 1.0
+    hold_s = 1.0
+    """Longest time (s) IMU / altimeter samples wait for a frame set older than them (``_hold``)."""
 
     def __init__(
         self,
         options: EkfOptions,
         intrinsics: Mapping[str, CameraIntrinsics],
         R_body_cam: Mapping[str, np.ndarray],
-        initial_p_world: np.ndarray,
+        initial_p_world: np.ndarray | None,
         initial_v_world: np.ndarray | None = None,
         initial_rpy: np.ndarray | None = None,
         gravity_mps2: float = GRAVITY_MPS2["europa"],
         p_cam_in_body: Mapping[str, np.ndarray] | None = None,
+        initial_yaw_rad: float = 0.0,
     ) -> None:
         self.options = options
         self.cameras: tuple[str, ...] = cameras_for_mode(options.mode)
@@ -85,13 +97,27 @@ class VisThermalEkfEstimator:
         self.slam = VisThermalSlam(options, models, gravity_mps2)
         self._detectors = {c: SiftDetector(options) for c in self.cameras}
         self._pool = ThreadPoolExecutor(max_workers=len(self.cameras)) if len(self.cameras) > 1 else None
-        self._p0 = np.asarray(initial_p_world, float).copy()
-        self._v0 = np.zeros(3) if initial_v_world is None else np.asarray(initial_v_world, float).copy()
+        self._p0 = None if initial_p_world is None else np.asarray(initial_p_world, float).copy()
+        self._v0 = None if initial_v_world is None else np.asarray(initial_v_world, float).copy()
         self._rpy0 = None if initial_rpy is None else np.asarray(initial_rpy, float).copy()
+        self._yaw0 = float(initial_yaw_rad)
         self._attitude: np.ndarray | None = None
+        self._local: LocalPositionSample | None = None
+        self._pending: list[ImuSample | AltimeterSample] = []
         self._last_good: SlamPose | None = None
         self.reset_counter = 0
-        self.counters = {"frames": 0, "bad_frames": 0, "reinit": 0, "missing_camera": 0}
+        self.counters = {
+            "frames": 0,
+            "bad_frames": 0,
+            "reinit": 0,
+            "missing_camera": 0,
+            "waiting_for_position": 0,
+            # from the filter's counters, refreshed at each frame set
+            "imu_samples": 0,
+            "late_imu": 0,
+            "stale_frames": 0,
+            "altimeter_updates": 0,
+        }
 
     # -- autopilot inputs ----------------------------------------------------------------------------
     def on_attitude(self, s: AttitudeSample) -> None:
@@ -99,13 +125,41 @@ class VisThermalEkfEstimator:
         self._attitude = np.array([s.roll_rad, s.pitch_rad, s.yaw_rad])
 
     def on_imu(self, s: ImuSample) -> None:
-        """Queue an IMU sample; propagation (eqs. 1-4) happens as the filter needs it (``ekf.slam``)."""
-        with _BLAS.limit(limits=1, user_api="blas"):
-            self.slam.add_imu(s.stamp_us, s.accel_mps2, s.gyro_rps)
+        """Hold an IMU sample for the filter (``_hold``); propagation (eqs. 1-4) happens as it needs it."""
+        self._hold(s)
+
+    def on_local_position(self, s: LocalPositionSample) -> None:
+        """The autopilot's position and velocity: used for the initial state only (see the class doc)."""
+        self._local = s
 
     def on_altimeter(self, s: AltimeterSample) -> None:
+        """Hold an altimeter sample for the filter (``_hold``): it updates the filter at its own stamp."""
+        self._hold(s)
+
+    def _hold(self, s: ImuSample | AltimeterSample) -> None:
+        """Keep a sample until a frame set at or after its stamp, then give it to the filter in stamp order.
+
+        The daemon hands over every sample that arrived before a frame set is processed, so when the
+        processing runs late (SIFT on a loaded machine: a few hundred ms) those include samples stamped
+        after the frames' capture; given at once they would carry the filter past the capture time and
+        the frames would be fused at the wrong time (``stale_frames``). Samples older than
+        ``hold_s`` behind the newest go to the filter anyway (no frames: the filter keeps up)."""
+        self._pending.append(s)
+        if s.stamp_us - self._pending[0].stamp_us > self.hold_s * 1e6:
+            self._feed(s.stamp_us - int(self.hold_s * 1e6))
+
+    def _feed(self, until_us: int) -> None:
+        """Give the filter the held samples stamped at or before ``until_us``, in stamp order."""
+        due = sorted((x for x in self._pending if x.stamp_us <= until_us), key=lambda x: x.stamp_us)
+        if not due:
+            return
+        self._pending = [x for x in self._pending if x.stamp_us > until_us]
         with _BLAS.limit(limits=1, user_api="blas"):
-            self.slam.add_altimeter(s.stamp_us, s.range_m)
+            for x in due:
+                if isinstance(x, ImuSample):
+                    self.slam.add_imu(x.stamp_us, x.accel_mps2, x.gyro_rps)
+                else:
+                    self.slam.add_altimeter(x.stamp_us, x.range_m)
 
     def close(self) -> None:
         if self._pool is not None:
@@ -143,25 +197,54 @@ class VisThermalEkfEstimator:
     def on_detections(self, stamp_us: int, detections: Mapping[str, Detections]) -> PoseEstimate | None:
         """One filter step from precomputed detections (the benchmark shares SIFT across modes)."""
         self.counters["frames"] += 1
+        self._feed(stamp_us)
         with _BLAS.limit(limits=1, user_api="blas"):
-            if not self.slam.started:
-                self._start(stamp_us)
+            if not self.slam.started and not self._start(stamp_us):
+                self.counters["waiting_for_position"] += 1
+                return None
             pose = self.slam.process_frame(stamp_us, dict(detections))
+            c = self.slam.counters
+            self.counters.update(
+                imu_samples=c.imu,
+                late_imu=c.late_imu,
+                stale_frames=c.stale_frames,
+                altimeter_updates=c.altimeter_updates,
+            )
             ekf = self.slam.ekf
             if ekf is None or not ekf.is_finite() or not np.all(np.isfinite(pose.p_world)):
                 self._reinit(stamp_us)
                 return None
         return self._to_estimate(pose)
 
-    def _start(self, stamp_us: int) -> None:
+    def _start(self, stamp_us: int) -> bool:
+        """Start the filter at ``stamp_us``; False (not started) while the initial position is unknown."""
+        lp = self._local
+        dt_s = float("inf") if lp is None else (stamp_us - lp.stamp_us) * 1e-6
+        if abs(dt_s) > self.max_local_position_age_s:
+            lp = None
+        if self._p0 is not None:
+            p0 = self._p0
+        elif lp is not None:
+            p0 = np.asarray(lp.p_ned_m, float) + np.asarray(lp.v_ned_mps, float) * dt_s
+        else:
+            return False
+        if self._v0 is not None:
+            v0 = self._v0
+        else:
+            v0 = np.zeros(3) if lp is None else np.asarray(lp.v_ned_mps, float)
         rpy = self._rpy0
         if rpy is None:
             rpy = self._attitude
         if rpy is None:
             imu = self.slam.latest_imu()
-            rpy = _attitude_from_gravity(imu[0], 0.0) if imu is not None else np.zeros(3)
+            rpy = (
+                _attitude_from_gravity(imu[0], self._yaw0)
+                if imu is not None
+                else np.array([0, 0, self._yaw0])
+            )
         q = quat_from_rot(rot_from_rpy(*rpy))
-        self.slam.start(stamp_us, self._p0, self._v0, q)
+        self.slam.start(stamp_us, p0, v0, q)
+        return True
 
     def _reinit(self, stamp_us: int) -> None:
         """Restart the filter at the last good pose (landmarks dropped) and bump reset_counter."""
@@ -170,6 +253,7 @@ class VisThermalEkfEstimator:
         good = self._last_good
         slam = VisThermalSlam(self.options, self._models, self.slam.gravity_mps2)
         slam._last_range = self.slam._last_range  # keep the depth prior across the restart
+        slam.counters = self.slam.counters  # health counters count over the flight
         self.slam = slam
         if good is None:
             self._start(stamp_us)

@@ -14,8 +14,8 @@ from typing import Any
 
 from companion.config import MavlinkConfig, OriginConfig
 from companion.geometry import rot_from_rpy
-from companion.io.mavlink import LinkCallbacks, MavlinkLink, MavlinkOptions
-from companion.types import PoseEstimate
+from companion.io.mavlink import LinkCallbacks, LocalPositionNed, MavlinkLink, MavlinkOptions
+from companion.types import LocalPositionSample, PoseEstimate
 
 log = logging.getLogger("companion.autopilot")
 
@@ -52,9 +52,20 @@ class AutopilotLinkAdapter:
         self.reset_offset += 1
         log.warning("autopilot reset detected (%s): reset_counter offset now %d", reason, self.reset_offset)
 
-    def start(self, on_attitude: Callable, on_imu: Callable, on_altimeter: Callable) -> None:
+    def start(
+        self,
+        on_attitude: Callable,
+        on_imu: Callable,
+        on_altimeter: Callable,
+        on_local_position: Callable[[LocalPositionSample], None],
+    ) -> None:
         cb = self.link.callbacks
         cb.on_attitude, cb.on_imu, cb.on_altimeter = on_attitude, on_imu, on_altimeter
+
+        def local_position(lp: LocalPositionNed) -> None:
+            on_local_position(LocalPositionSample(lp.stamp_us, lp.p_ned_m, lp.v_ned_mps))
+
+        cb.on_local_position = local_position
         self.link.start()
 
     def _maybe_set_origin(self) -> None:
