@@ -1,6 +1,10 @@
 """The simulated vehicle: an ArduPilot-like autopilot and a nadir camera flying a trajectory over a
 built-in terrain, in real time, on loopback.
 
+Two worlds: ``mars`` (paper 1: one visible nadir camera over a built-in Mars scene) and ``europa`` (paper 2:
+co-registered visible + thermal cameras publishing each pair with one capture stamp on two keys, over the
+simulated Europa site, flying one of the ten paper trajectories; ``sim_bridge.europa.vehicle``).
+
 - the autopilot side (``SimAutopilotLink``) sends telemetry from the truth with noise and bias, answers
   TIMESYNC, holds an EKF origin and checks every VISION_POSITION_ESTIMATE / ODOMETRY as ArduPilot would;
 - the camera renders the frame at the true pose and publishes it on Zenoh as a ROS 2 ``sensor_msgs/Image``
@@ -37,21 +41,52 @@ class SimConfig:
 
     scene_id: str = "08"
     seed: int = 0
-    trajectory: str = "circular"  # circular | forward | scanning
+    trajectory: str = "circular"  # mars: circular | forward | scanning; europa: 1..10 (paper 2)
     duration_s: float = 120.0
     speed_mps: float = 4.0
     height_agl_m: float = 100.0
     radius_m: float = 120.0
     camera_rate_hz: float = 15.0
     camera_key: str = "uav/camera/nadir"
+    world: str = "mars"  # mars | europa
+    visible_key: str = "uav/camera/visible"  # europa: the pair's keys (configs/europa_dual_ekf.toml)
+    thermal_key: str = "uav/camera/thermal"
     zenoh_listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     mavlink: str = "udpin:127.0.0.1:14550"
-    origin_lat_lon_alt: tuple[float, float, float] = (18.4447, 77.4508, -2500.0)  # Jezero crater, Mars
+    origin_lat_lon_alt: tuple[float, float, float] | None = (18.4447, 77.4508, -2500.0)  # Jezero, Mars
+    # (None: the autopilot has no EKF origin until a companion sets one, as without GNSS)
     out_dir: str = "runs/sim"
     progress_period_s: float = 2.0
     drop_every: int = 0  # publish only; skip every n-th frame (tests of dropped frames); 0 = none
     start_delay_s: float = 0.0  # autopilot up, camera silent: time for a companion to connect and sync
     wait_companion_s: float = 0.0  # before that, wait (at most this long) for a companion's HEARTBEAT
+
+
+WORLDS = ("mars", "europa")
+
+
+def world_defaults(world: str) -> dict[str, Any]:
+    """SimConfig fields whose default depends on the world (the CLI fills them when not given)."""
+    d = SimConfig()
+    if world == "mars":
+        return {
+            "trajectory": d.trajectory,
+            "duration_s": d.duration_s,
+            "camera_rate_hz": d.camera_rate_hz,
+            "origin_lat_lon_alt": d.origin_lat_lon_alt,
+        }
+    if world == "europa":
+        from sim_bridge.europa.trajectories import DURATION_S
+        from sim_bridge.europa.vehicle import EUROPA_CAMERA_RATE_HZ
+
+        # no GNSS on Europa: the companion sets the EKF origin from its config
+        return {
+            "trajectory": "1",
+            "duration_s": DURATION_S,
+            "camera_rate_hz": EUROPA_CAMERA_RATE_HZ,
+            "origin_lat_lon_alt": None,
+        }
+    raise ValueError(f"unknown world {world!r} ({', '.join(WORLDS)})")
 
 
 def make_trajectory(cfg: SimConfig, ground_m: float) -> Trajectory:
@@ -81,6 +116,10 @@ class SimResult:
     frames_published: int
     frames_skipped: int
     rejected: dict[str, int]
+    duration_s: float
+    """Flight time from the trajectory's start (s)."""
+    est_truth_p: np.ndarray
+    """(N, 3) truth at each estimate's own time (for the position errors of the summary)."""
     summary: dict[str, Any] = field(default_factory=dict)
 
 
@@ -101,22 +140,42 @@ class SimVehicle:
     """Runs one flight in real time. ``run()`` blocks until the trajectory ends or ``stop()``."""
 
     def __init__(self, cfg: SimConfig, progress: Callable[[dict[str, Any]], None] | None = None) -> None:
-        from sim_bridge.render import VisibleRenderer
-        from sim_bridge.terrain import make_scene
-
         self.cfg = cfg
         self.progress = progress
-        self.scene = make_scene(cfg.scene_id, seed=cfg.seed)
-        self.ground_m = float(np.nanmean(self.scene.dem.height_m))
-        self.traj = make_trajectory(cfg, self.ground_m)
-        self.intr = CameraIntrinsics.from_focal_sensor(480, 480, 36.0, 36.0)
-        self.renderer = VisibleRenderer(self.scene.dem, self.scene.albedo, self.scene.sun, self.intr)
         self._stop = threading.Event()
         self.t0_us: int | None = None
         self.frames_published = 0
         self.frames_skipped = 0
-        opts = SimAutopilotOptions(
-            planet="mars", origin=cfg.origin_lat_lon_alt, range_max_m=max(150.0, 2 * cfg.height_agl_m)
+        if cfg.world == "europa":
+            from sim_bridge.europa.vehicle import EuropaFlight, europa_telemetry_noise
+
+            self.europa = EuropaFlight(cfg.seed, cfg.trajectory)
+            self.traj = self.europa.traj
+            self.camera_keys: tuple[str, ...] = (cfg.visible_key, cfg.thermal_key)
+            opts = SimAutopilotOptions(
+                planet="europa",
+                origin=cfg.origin_lat_lon_alt,
+                range_max_m=250.0,
+                noise=europa_telemetry_noise(),
+            )
+        elif cfg.world == "mars":
+            from sim_bridge.render import VisibleRenderer
+            from sim_bridge.terrain import make_scene
+
+            self.scene = make_scene(cfg.scene_id, seed=cfg.seed)
+            self.ground_m = float(np.nanmean(self.scene.dem.height_m))
+            self.traj = make_trajectory(cfg, self.ground_m)
+            self.intr = CameraIntrinsics.from_focal_sensor(480, 480, 36.0, 36.0)
+            self.renderer = VisibleRenderer(self.scene.dem, self.scene.albedo, self.scene.sun, self.intr)
+            self.camera_keys = (cfg.camera_key,)
+            opts = SimAutopilotOptions(
+                planet="mars", origin=cfg.origin_lat_lon_alt, range_max_m=max(150.0, 2 * cfg.height_agl_m)
+            )
+        else:
+            raise ValueError(f"unknown world {cfg.world!r} ({', '.join(WORLDS)})")
+        # flight time: Mars trajectories are built for duration_s, Europa's (180 s) are cut at it
+        self.duration_s = (
+            self.traj.duration_s if cfg.world == "mars" else min(cfg.duration_s, self.traj.duration_s)
         )
         self.autopilot = SimAutopilotLink(
             cfg.mavlink, truth=self._truth, options=opts, rng=np.random.default_rng(cfg.seed + 1)
@@ -129,8 +188,11 @@ class SimVehicle:
     def _truth(self, t_us: int) -> dict[str, Any]:
         s = self.traj.state_at(self._sim_t(t_us))
         R = s.R_world_body
-        ground = self.scene.dem.height_at(s.p_world[0], s.p_world[1])[0]
-        rng_m = (-s.p_world[2] - ground) / max(R[2, 2], 0.2) if np.isfinite(ground) else float("nan")
+        if self.cfg.world == "europa":
+            rng_m = self.europa.range_m(s)
+        else:
+            ground = self.scene.dem.height_at(s.p_world[0], s.p_world[1])[0]
+            rng_m = (-s.p_world[2] - ground) / max(R[2, 2], 0.2) if np.isfinite(ground) else float("nan")
         return {
             "rpy_rad": rpy_from_rot(R),
             "p_ned_m": s.p_world,
@@ -150,7 +212,7 @@ class SimVehicle:
         session = open_session(
             mode="peer", connect=[], listen=list(cfg.zenoh_listen), multicast_scouting=False
         )
-        publisher = session.declare_publisher(cfg.camera_key)
+        publishers = [session.declare_publisher(key) for key in self.camera_keys]
         self.autopilot.start()
         # take off once a companion is heard (its heartbeat starts only when its estimator is ready)
         deadline = time.monotonic() + cfg.wait_companion_s
@@ -161,7 +223,7 @@ class SimVehicle:
         self._stop.wait(cfg.start_delay_s)
         self.t0_us = time.time_ns() // 1000
         period_us = int(1e6 / cfg.camera_rate_hz)
-        n_frames = int(self.traj.duration_s * cfg.camera_rate_hz)
+        n_frames = int(self.duration_s * cfg.camera_rate_hz)
         next_progress = time.monotonic() + cfg.progress_period_s
         skipped = 0
         k = 0
@@ -179,12 +241,12 @@ class SimVehicle:
                 if wait_s > 0:
                     time.sleep(wait_s)
                 s = self.traj.state_at(k * period_us * 1e-6)
-                R_wc, p_c = camera_pose(s.R_world_body, s.p_world)
-                image = self.renderer.render(R_wc, p_c, seed=cfg.seed * 1_000_003 + k)
+                payloads = self._render(s, capture_us, seed=cfg.seed * 1_000_003 + k)
                 k += 1
                 if cfg.drop_every and k % cfg.drop_every == 0:
                     continue
-                publisher.put(encode_image(image, capture_us, frame_id="nadir_camera", encoding="mono8"))
+                for publisher, payload in zip(publishers, payloads):
+                    publisher.put(payload)
                 self.frames_published += 1
                 if self.progress is not None and time.monotonic() >= next_progress:
                     next_progress += cfg.progress_period_s
@@ -192,7 +254,8 @@ class SimVehicle:
             time.sleep(0.5)  # let the last estimates arrive
         finally:
             self.autopilot.stop()
-            publisher.undeclare()
+            for publisher in publishers:
+                publisher.undeclare()
             session.close()
         self.frames_skipped = skipped
         if skipped:
@@ -203,6 +266,19 @@ class SimVehicle:
             )
         return self._result()
 
+    def _render(self, s: Any, capture_us: int, seed: int) -> list[bytes]:
+        """The frame(s) at state ``s`` as CDR Images stamped ``capture_us``, one per ``camera_keys``."""
+        if self.cfg.world == "europa":
+            visible, thermal = self.europa.render(s, seed)
+            # one capture stamp for the pair: the cameras are synchronised (paper 2)
+            return [
+                encode_image(visible, capture_us, frame_id="visible_camera", encoding="mono8"),
+                encode_image(thermal, capture_us, frame_id="thermal_camera", encoding="mono16"),
+            ]
+        R_wc, p_c = camera_pose(s.R_world_body, s.p_world)
+        image = self.renderer.render(R_wc, p_c, seed=seed)
+        return [encode_image(image, capture_us, frame_id="nadir_camera", encoding="mono8")]
+
     def _progress_report(self, t_s: float) -> dict[str, Any]:
         recs = self.autopilot.accepted()
         err = float("nan")
@@ -212,7 +288,7 @@ class SimVehicle:
             err = float(np.linalg.norm(r.p_ned_m[:2] - self.traj.state_at(t_est).p_world[:2]))
         return {
             "t_s": round(t_s, 1),
-            "duration_s": self.traj.duration_s,
+            "duration_s": self.duration_s,
             "frames": self.frames_published,
             "estimates": len(recs),
             "rejected": sum(self.autopilot.rejected().values()),
@@ -228,7 +304,7 @@ class SimVehicle:
         t_est = np.array([self._sim_t(self._world_us(r.usec)) for r in recs])
         p_est = np.array([r.p_ned_m for r in recs]).reshape(-1, 3)
         rpy_est = np.array([r.rpy_rad for r in recs]).reshape(-1, 3)
-        t_truth = np.arange(0.0, self.traj.duration_s, 1.0 / self.cfg.camera_rate_hz)
+        t_truth = np.arange(0.0, self.duration_s, 1.0 / self.cfg.camera_rate_hz)
         p_truth = np.array([s.p_world for s in self.traj.states(t_truth)])
         return SimResult(
             truth_t_s=t_truth,
@@ -240,7 +316,32 @@ class SimVehicle:
             frames_published=self.frames_published,
             frames_skipped=self.frames_skipped,
             rejected=self.autopilot.rejected(),
+            duration_s=self.duration_s,
+            est_truth_p=np.array([s.p_world for s in self.traj.states(t_est)] if len(t_est) else []).reshape(
+                -1, 3
+            ),
         )
+
+    def distance_m(self) -> float:
+        """Path length of the flight (m)."""
+        return self.traj.distance_m(self.traj.t0_s, self.traj.t0_s + self.duration_s)
+
+
+def position_error_stats(res: SimResult) -> dict[str, float | int]:
+    """Absolute position error (m) of the accepted estimates against the truth at their own times, no
+    alignment (the estimate is in the world frame): count, mean, median, rmse, p95, max, final."""
+    if not len(res.est_p):
+        return {"count": 0}
+    err = np.linalg.norm(res.est_p - res.est_truth_p, axis=1)
+    return {
+        "count": int(len(err)),
+        "mean": float(np.mean(err)),
+        "median": float(np.median(err)),
+        "rmse": float(np.sqrt(np.mean(err**2))),
+        "p95": float(np.percentile(err, 95)),
+        "max": float(np.max(err)),
+        "final": float(err[-1]),
+    }
 
 
 def save_result(res: SimResult, out_dir: Path, cfg: SimConfig, traj: Trajectory) -> dict[str, Any]:
@@ -257,7 +358,8 @@ def save_result(res: SimResult, out_dir: Path, cfg: SimConfig, traj: Trajectory)
         "estimates_accepted": len(res.est_t_s),
         "rejected": res.rejected,
         "resets": int(res.reset_counters.max()) if len(res.reset_counters) else 0,
-        "distance_m": traj.distance_m(),
+        "distance_m": traj.distance_m(traj.t0_s, traj.t0_s + res.duration_s),
+        "position_error_m": position_error_stats(res),
     }
     (out_dir / "sim_summary.json").write_text(json.dumps(summary, indent=2))
     return summary
