@@ -224,13 +224,17 @@ class TerrainLbaEstimator:
         self._sync_result: BackendResult | str | None = None
         self._cov_kf: tuple[int, np.ndarray] | None = None  # (kf id, body covariance) of the last result
         self.last_result: BackendResult | None = None
-        self.counters = {
+        # front-end totals; ``counters`` adds the back-end's (see there)
+        self._fe = {
             "frames": 0,
             "lost": 0,
             "reinit": 0,
-            "backend_jobs": 0,
-            "backend_errors": 0,
             "no_attitude": 0,
+            "keyframes": 0,  # made by the VO (a key frame made while the back-end is busy is not sent)
+            "backend_jobs": 0,  # key frames sent to the back-end
+            "backend_applied": 0,  # results written back into the map
+            "backend_stale": 0,  # results for a map that was reset meanwhile (dropped)
+            "backend_errors": 0,
         }
 
     # -- inputs from the autopilot ------------------------------------------------------------------
@@ -287,7 +291,7 @@ class TerrainLbaEstimator:
             K=self.K,
             epoch=self.epoch,
         )
-        self.counters["backend_jobs"] += 1
+        self._fe["backend_jobs"] += 1
         self._in_flight = (k, self.epoch, self.frame_index + self.opt.backend_delay_frames)
         if self._backend is not None:
             self._sync_result = self._backend.process(job)
@@ -315,10 +319,12 @@ class TerrainLbaEstimator:
                 res = self._conn.recv()
         self._in_flight = None
         if isinstance(res, str) or res is None:
-            self.counters["backend_errors"] += 1
+            self._fe["backend_errors"] += 1
             return
         if res.epoch != self.epoch or self.vo.state != "tracking":
+            self._fe["backend_stale"] += 1
             return  # the map it refers to was reset
+        self._fe["backend_applied"] += 1
         self.vo.apply_correction(
             res.newest_kf,
             res.T_align,
@@ -353,7 +359,7 @@ class TerrainLbaEstimator:
         self.vo.reset()
         self.epoch += 1
         self.reset_counter += 1
-        self.counters["reinit"] += 1
+        self._fe["reinit"] += 1
         self._wanted = None
         self._kf_frame.clear()
         self._cov_kf = None
@@ -363,13 +369,13 @@ class TerrainLbaEstimator:
         if frame is None:
             return None
         self.frame_index += 1
-        self.counters["frames"] += 1
+        self._fe["frames"] += 1
         t = frame.stamp_us
         self._collect()
         rpy_att = self._attitude.nearest(t, self.opt.attitude_max_age_us)
         R_wb_att = None if rpy_att is None else _rot_from_rpy(*rpy_att)
         if R_wb_att is None:
-            self.counters["no_attitude"] += 1
+            self._fe["no_attitude"] += 1
             if self.vo.state != "tracking":
                 R_wb_att = (
                     _rot_from_rpy(0.0, 0.0, self.initial_yaw_rad) if self._last_p_body is None else None
@@ -381,7 +387,7 @@ class TerrainLbaEstimator:
             rng = self._range_from_dem(p_start, R_wb_att)
         st = self.vo.process(frame.image, t, R_wc_att, rng, p_start)
         if st.state == "lost":
-            self.counters["lost"] += 1
+            self._fe["lost"] += 1
             self._reinit()
             return self._not_ok(t, EstimateStatus.LOST, st)
         if st.T_world_cam is None:
@@ -394,6 +400,7 @@ class TerrainLbaEstimator:
         self._last_p_body = p_body
         if st.keyframe_id is not None:
             k = st.keyframe_id
+            self._fe["keyframes"] += 1
             self._kf_dist[k] = self._dist_m
             for old in [kk for kk in self._kf_dist if kk < k - 4 * self.opt.vo.max_keyframes_kept]:
                 del self._kf_dist[old]
@@ -457,6 +464,21 @@ class TerrainLbaEstimator:
             status=status,
             info={"tracks": st.n_tracks, "state": st.state},
         )
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Running totals for the daemon's status: the front-end's (frames, lost, reinit, no_attitude,
+        keyframes made, backend_jobs / applied / stale / errors) and the back-end's as of its last result
+        (lba_runs, lba_failed, marginals_failed, fix_attempts / accepted / rejected / failed, alignments,
+        realignments). A fresh dict: safe to read from another thread."""
+        be = {k: v for k, v in self.backend_counters().items() if k != "keyframes" and "fix_failed_" not in k}
+        return {**self._fe, **be}
+
+    @property
+    def no_fix_reasons(self) -> dict[str, int]:
+        """Geo-fixes that failed, by the matcher's reason (as of the back-end's last result)."""
+        p = "fix_failed_"
+        return {k[len(p) :]: v for k, v in self.backend_counters().items() if k.startswith(p)}
 
     def backend_counters(self) -> dict:
         """Running totals of the back-end (key frames, fixes accepted / rejected / failed, alignments)."""

@@ -126,6 +126,7 @@ class Backend:
         self.locate = locate if options.lba.w_geo > 0 else None
         self.counters = {
             "keyframes": 0,
+            "lba_runs": 0,
             "fix_attempts": 0,
             "fix_failed": 0,
             "fix_accepted": 0,
@@ -317,6 +318,7 @@ class Backend:
             down_cam=s.down_cam,
         )
         sol = solve_window(problem, self.opt.lba)
+        self.counters["lba_runs"] += 1
         t2 = time.perf_counter()
         if not sol.ok:
             self.counters["lba_failed"] += 1
