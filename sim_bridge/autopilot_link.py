@@ -176,6 +176,7 @@ class SimAutopilotLink:
         self.sent: dict[str, int] = {}
         self.timesync_replies = 0
         self.reboots = 0
+        self._silent_until = 0.0
         self.thread_errors = 0
         self._last_ext_usec: int | None = None
         self._next_due: dict[str, float] = {}
@@ -193,8 +194,10 @@ class SimAutopilotLink:
         elapsed = now - self._boot_wall_us
         return int(elapsed * (1.0 + self.drift_ppm * 1e-6)) + self._boot_offset_us - now
 
-    def reboot(self) -> None:
-        """Restart the boot clock at 0 and forget volatile state (origin, ext-nav history, biases)."""
+    def reboot(self, boot_silence_s: float = 0.0) -> None:
+        """Restart the boot clock at 0 and forget volatile state (origin, ext-nav history, biases).
+        boot_silence_s: the autopilot then says nothing and hears nothing for this long (booting)."""
+        self._silent_until = time.monotonic() + boot_silence_s
         with self._lock:
             self._boot_wall_us = self.clock_us()
             self._boot_offset_us = 0
@@ -254,6 +257,8 @@ class SimAutopilotLink:
     # --- loop -----------------------------------------------------------------------------------
     def _tick(self) -> None:
         data = self.transport.read(self.options.read_timeout_s)
+        if time.monotonic() < self._silent_until:
+            return  # booting: deaf and mute
         if data:
             for msg in self.codec.decode(data):
                 self._handle(msg)

@@ -347,10 +347,29 @@ def test_autopilot_reboot_is_detected_and_sync_restarts() -> None:
         # After the reboot the old, higher timestamps do not block new estimates.
         assert link.send_estimate(estimate(time.time_ns() // 1000 - 20_000)) is None
         assert wait_for(lambda: sim.accepted(), 3.0)
+        time.sleep(1.0)  # let every sign of the reboot arrive (SYSTEM_TIME, TIMESYNC, heartbeat)
     finally:
         link.stop()
         sim.stop()
     assert set(link.resets) <= {"system_time", "timesync_jump", "heartbeat_gap"}
+    assert link.reboots == 1, (link.reboots, link.resets)  # one reboot, reset_counter moved once
+
+
+def test_one_reboot_moves_reset_counter_once_though_it_shows_several_signs() -> None:
+    # A reboot that takes longer than the link timeout shows as a heartbeat gap AND a restarted boot clock.
+    sim, link = make_pair(offset_us=600_000_000, link_opts={"link_timeout_s": 0.5, "stale_after_s": 0.3})
+    sim.start()
+    link.start()
+    try:
+        assert wait_for(lambda: link.timesync.synced, 5.0)
+        sim.reboot(boot_silence_s=1.2)
+        assert wait_for(lambda: sum(link.resets.values()) >= 2, 6.0), link.resets
+        assert wait_for(lambda: link.timesync.synced, 5.0)
+        time.sleep(0.5)
+    finally:
+        link.stop()
+        sim.stop()
+    assert link.reboots == 1, (link.reboots, link.resets)
 
 
 def test_link_state_goes_stale_then_down_when_autopilot_stops() -> None:

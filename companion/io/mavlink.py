@@ -224,6 +224,9 @@ class MavlinkOptions:
     """No autopilot heartbeat for this long -> DOWN; when it comes back, treated as a possible reboot."""
     reboot_backstep_ms: int = 1000
     """SYSTEM_TIME.time_boot_ms going back by more than this = autopilot reboot (smaller: reordering)."""
+    reboot_coalesce_s: float = 5.0
+    """Reboot signs closer than this to the previous one (a restarted boot clock shows in SYSTEM_TIME,
+    TIMESYNC and the heartbeat gap, one after the other) are the same reboot: reset_counter moves once."""
     max_vision_rate_hz: float = 40.0
     """Cap on estimates sent (ArduPilot EKF3 drops external-nav samples closer than 20 ms; 40 Hz = 25 ms)."""
     signing_key: bytes | None = None
@@ -294,7 +297,10 @@ class MavlinkLink:
         self.refused: dict[str, int] = {}
         """Estimates not sent, by REFUSE_* reason."""
         self.resets: dict[str, int] = {}
-        """Autopilot reboots / reconnects detected, by reason."""
+        """Signs of an autopilot reboot / reconnect seen, by reason (one reboot may show several)."""
+        self.reboots = 0
+        """Distinct reboots: signs within ``reboot_coalesce_s`` of the previous one are the same reboot."""
+        self._last_reboot_mono: float | None = None
         self.last_refusal: str | None = None
         """Reason the last refused send was refused."""
         self.callback_errors = 0
@@ -371,6 +377,7 @@ class MavlinkLink:
             "received": dict(self.received),
             "refused": dict(self.refused),
             "autopilot_resets": dict(self.resets),
+            "autopilot_reboots": self.reboots,
             "bad_data": dict(self.codec.bad_data),
             "signing": self.codec.signing_counters if self.options.signing_key else None,
             "callback_errors": self.callback_errors,
@@ -600,6 +607,15 @@ class MavlinkLink:
             self.timesync.reset()
         self._last_boot_ms = None
         self._last_vision_usec = None
+        mono = time.monotonic()
+        same = (
+            self._last_reboot_mono is not None
+            and mono - self._last_reboot_mono < self.options.reboot_coalesce_s
+        )
+        self._last_reboot_mono = mono
+        if same:
+            return
+        self.reboots += 1
         with self._lock:
             self._reset_flag = True
         self._call(self.callbacks.on_autopilot_reset, reason)
