@@ -7,6 +7,7 @@ import sys
 
 BENCHES = {
     "georef": "Table 3 and sections 5.3.1-5.3.3 analogues: geo-referencing accuracy and speed",
+    "georef_budget": "geo-referencing error budget: DEM, albedo, lighting and noise switched off in turn",
     "latency": "daemon frame-capture to VISION_POSITION_ESTIMATE latency and sustained rate",
     "terrain_slam": "Tables 4, 5, 7 analogues: VO only vs terrain LBA",
     "thermal_ekf": "paper 2 Tables 1-2 analogues: visible / thermal / dual EKF-SLAM drift",
