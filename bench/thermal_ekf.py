@@ -1,6 +1,8 @@
 """Paper 2 Tables 1 and 2 analogues: visible / thermal / dual inverse-depth EKF-SLAM over simulated Europa.
 
-``python -m bench thermal_ekf [--quick] [--json PATH] [--trials N] [--trajectories 1,2,..] [--workers 2]``
+``python -m bench thermal_ekf [--quick] [--json PATH] [--trials N] [--trajectories 1,2,..] [--workers 2]
+[--runs-log PATH [--resume]]`` (the runs log gets each trial as it finishes; --resume keeps those and runs
+the rest, so a crash loses nothing)
 
 Per trajectory "1".."10" (``sim_bridge.europa.trajectories``) and trial k (30 in the paper; --quick: two
 trajectories x three trials): the trial's flown trajectory (its own actuation noise, seed k), IMU at
@@ -312,6 +314,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trajectories", type=str, default=None, help="comma-separated names (default all)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--runs-log", type=Path, default=None, help="append each finished trial here (JSON lines)")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="with --runs-log: keep the trials already in the log and run only the missing ones",
+    )
     p.add_argument("--from-runs", type=Path, default=None, help="summarise a runs log instead of running")
     p.add_argument(
         "--trials-wall-s", type=float, default=None, help="with --from-runs: wall time of those runs"
@@ -326,6 +333,7 @@ def main(argv: list[str] | None = None) -> int:
     jobs = [(n, k, a.seed) for k in range(trials) for n in names]
     t0 = time.perf_counter()
     results: list[dict[str, Any]] = []
+    n_resumed = 0
 
     def done(r: dict[str, Any]) -> None:
         results.append(r)
@@ -335,6 +343,13 @@ def main(argv: list[str] | None = None) -> int:
             with a.runs_log.open("a") as f:
                 f.write(json.dumps(r) + "\n")
 
+    if a.resume and a.runs_log is not None and a.runs_log.exists():
+        logged = [json.loads(line) for line in a.runs_log.read_text().splitlines() if line.strip()]
+        results = [r for r in logged if r["name"] in names and r["trial"] < trials]
+        have = {(r["name"], r["trial"]) for r in results}
+        jobs = [j for j in jobs if (j[0], j[1]) not in have]
+        n_resumed = len(results)
+        print(f"resuming: {n_resumed} trials from {a.runs_log}, {len(jobs)} to run", flush=True)
     if a.from_runs is not None:
         results = [json.loads(line) for line in a.from_runs.read_text().splitlines() if line.strip()]
         names = [n for n in names if any(r["name"] == n for r in results)]
@@ -383,6 +398,7 @@ def main(argv: list[str] | None = None) -> int:
         },
         "render_ms_per_pair": float(np.mean([r["render_s_per_pair"] for r in results]) * 1e3),
         "wall_s": wall,
+        "resumed_trials": n_resumed,
         "workers": a.workers,
     }
     print()

@@ -33,7 +33,7 @@ def test_to_uint8_stretches_thermal_counts_robustly():
 
 def test_sift_detects_and_scales_back():
     img = (255 * _texture(2)).astype(np.uint8)
-    det = SiftDetector(EkfOptions()).detect(img)
+    det = SiftDetector(EkfOptions(detect_scale=1.0)).detect(img)
     assert 150 <= len(det) <= EkfOptions().sift_nfeatures
     assert det.desc.shape == (len(det), 128) and det.desc.dtype == np.float32
     half = SiftDetector(EkfOptions(detect_scale=0.5)).detect(img)

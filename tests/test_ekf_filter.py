@@ -219,3 +219,44 @@ def test_sparse_landmark_update_equals_the_dense_update():
     np.testing.assert_allclose(a.P, b.P, atol=1e-12)
     np.testing.assert_allclose(a.y, b.y, atol=1e-12)
     np.testing.assert_allclose(a.r, b.r, atol=1e-12)
+
+
+@pytest.mark.parametrize("m", [1, 2])
+def test_column_update_equals_the_dense_update(m):
+    """``update_columns`` (the altimeter's path; in-place rank-1 form for one row) = ``update`` with dense H."""
+    import copy
+
+    from companion.ekf.landmarks import initialise
+
+    rng = np.random.default_rng(5)
+    st = straight_flight(duration_s=20.0).state_at(0.0)
+    f = InverseDepthEkf(EkfOptions(), st.p_world, quat_from_rot(st.R_world_body), st.v_world, G)
+    uv = rng.uniform([20, 20], [620, 460], (6, 2))
+    y, Jp, Ju = initialise(uv, np.full(6, 0.01), f.r, f.R_world_body, camera_model())
+    f.add_landmarks(y, Jp, Ju, 1.0, np.full(6, 0.003), 0)
+    for _ in range(30):
+        f.propagate(np.array([0.1, -0.05, -G]), np.array([0.01, 0.0, -0.02]), 0.01)
+    cols = np.r_[0:6, f.lm_slice(2), f.lm_slice(4)]
+    Hc = rng.normal(0, 1.0, (m, len(cols)))
+    res, Rm = rng.normal(0, 0.1, m), np.eye(m) * 0.05
+    a, b = copy.deepcopy(f), copy.deepcopy(f)
+    H = np.zeros((m, b.P.shape[0]))
+    H[:, cols] = Hc
+    np.testing.assert_allclose(a.innovation_covariance_columns(cols, Hc, Rm), b.innovation_covariance(H, Rm))
+    a.update_columns(cols, Hc, res, Rm)
+    b.update(H, res, Rm)
+    np.testing.assert_allclose(a.P, b.P, atol=1e-12)
+    np.testing.assert_allclose(a.y, b.y, atol=1e-12)
+    np.testing.assert_allclose(a.r, b.r, atol=1e-12)
+
+
+def test_facet_reuse_check_follows_the_beam():
+    from companion.ekf.altimeter import facet_encloses_beam, select_facet
+
+    R = np.eye(3)  # level, body down = world down
+    pts = np.array([[10.0, 0.0, 50.0], [-6.0, 8.0, 50.0], [-6.0, -8.0, 50.0], [30.0, 30.0, 50.0]])
+    idx = select_facet(pts, np.zeros(3), R)
+    assert idx is not None and sorted(idx.tolist()) == [0, 1, 2]
+    assert facet_encloses_beam(pts[idx], np.zeros(3), R)
+    assert not facet_encloses_beam(pts[idx], np.array([20.0, 0.0, 0.0]), R)  # beam has left the triangle
+    assert not facet_encloses_beam(pts[idx], np.array([0.0, 0.0, 60.0]), R)  # points above the vehicle

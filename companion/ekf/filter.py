@@ -33,7 +33,7 @@ import numpy as np
 
 from companion.ekf.landmarks import LANDMARK_DIM
 from companion.ekf.options import EkfOptions
-from companion.ekf.so3 import quat_exp, quat_mul, quat_normalised, rot_exp, rot_from_quat, skew
+from companion.ekf.so3 import quat_exp, quat_mul, quat_normalised, rot_from_quat, skew
 
 VEHICLE_DIM = 18
 """Error-state length of the vehicle: dr, dtheta, dv, domega, db_a, db_g."""
@@ -89,6 +89,7 @@ class InverseDepthEkf:
         self.P = P
         self._Phi = np.eye(VEHICLE_DIM)
         self._phi_pending = False
+        self._dt_cache: tuple[float, np.ndarray, np.ndarray] = (float("nan"), P, P)  # see _dt_terms
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -121,29 +122,47 @@ class InverseDepthEkf:
         a_w = R @ a_b + self.g_world
         self.r = self.r + self.v * dt + 0.5 * a_w * dt * dt  # eq. 1
         self.v = self.v + a_w * dt  # eq. 3
-        self.q = quat_normalised(quat_mul(self.q, quat_exp(w * dt)))  # eq. 2
+        dq = quat_exp(w * dt)
+        self.q = quat_normalised(quat_mul(self.q, dq))  # eq. 2
         self.w = w  # eq. 4
-        # error-state transition (Solà 2017, eq. 269 with the rate as a state)
-        F = np.eye(VEHICLE_DIM)
+        # error-state transition (Solà 2017, eq. 269 with the rate as a state); the entries that depend on
+        # dt only come from a per-dt template (the IMU loop runs this 100-200 times a second: np.eye and
+        # block assembly dominated it), the attitude-dependent blocks are written in place
+        F_dt, Q = self._dt_terms(dt)
+        F = F_dt.copy()
         Rax = R @ skew(a_b)
-        F[IDX_R, IDX_V] = np.eye(3) * dt
-        F[IDX_R, IDX_TH] = -0.5 * dt * dt * Rax
+        F[IDX_R, IDX_TH] = (-0.5 * dt * dt) * Rax
         F[IDX_V, IDX_TH] = -dt * Rax
-        F[IDX_TH, IDX_TH] = rot_exp(w * dt).T
+        F[IDX_TH, IDX_TH] = rot_from_quat(dq).T  # Exp(w dt)^T
+        if o.estimate_imu_bias:
+            F[IDX_R, IDX_BA] = (-0.5 * dt * dt) * R
+            F[IDX_V, IDX_BA] = -dt * R
+        Pvv = self.P[:VEHICLE_DIM, :VEHICLE_DIM]
+        self.P[:VEHICLE_DIM, :VEHICLE_DIM] = F @ Pvv @ F.T + Q
+        if self.n_landmarks:
+            self._Phi = F @ self._Phi
+            self._phi_pending = True
+
+    def _dt_terms(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(F_dt, Q): the transition's entries that depend on dt only (18,18) and the discrete process noise
+        of one step (18,18): accel white noise -> dv, dr; gyro white noise -> dtheta, domega; bias random
+        walks. Cached for the last dt (the IMU period rarely changes)."""
+        if self._dt_cache[0] == dt:
+            return self._dt_cache[1], self._dt_cache[2]
+        o = self.opts
+        I3 = np.eye(3)
+        F = np.eye(VEHICLE_DIM)
+        F[IDX_R, IDX_V] = I3 * dt
         F[IDX_W, IDX_W] = 0.0
         if o.estimate_imu_bias:
-            F[IDX_R, IDX_BA] = -0.5 * dt * dt * R
-            F[IDX_V, IDX_BA] = -dt * R
-            F[IDX_TH, IDX_BG] = -dt * np.eye(3)
-            F[IDX_W, IDX_BG] = -np.eye(3)
+            F[IDX_TH, IDX_BG] = -dt * I3
+            F[IDX_W, IDX_BG] = -I3
         else:
             F[IDX_BA, IDX_BA] = 0.0
             F[IDX_BG, IDX_BG] = 0.0
-        # discrete noise: accel white -> dv, dr; gyro white -> dtheta, domega; bias walks
         qa = o.accel_noise_density**2 / dt
         qg = o.gyro_noise_density**2 / dt
         Q = np.zeros((VEHICLE_DIM, VEHICLE_DIM))
-        I3 = np.eye(3)
         Q[IDX_V, IDX_V] = I3 * (qa * dt * dt)
         Q[IDX_R, IDX_R] = I3 * (qa * 0.25 * dt**4)
         Q[IDX_R, IDX_V] = Q[IDX_V, IDX_R] = I3 * (qa * 0.5 * dt**3)
@@ -153,11 +172,8 @@ class InverseDepthEkf:
         if o.estimate_imu_bias:
             Q[IDX_BA, IDX_BA] = I3 * (o.accel_bias_walk**2 * dt)
             Q[IDX_BG, IDX_BG] = I3 * (o.gyro_bias_walk**2 * dt)
-        Pvv = self.P[:VEHICLE_DIM, :VEHICLE_DIM]
-        self.P[:VEHICLE_DIM, :VEHICLE_DIM] = F @ Pvv @ F.T + Q
-        if self.n_landmarks:
-            self._Phi = F @ self._Phi
-            self._phi_pending = True
+        self._dt_cache = (dt, F, Q)
+        return F, Q
 
     def _flush(self) -> None:
         """Apply the accumulated transition to the vehicle-landmark cross covariance."""
@@ -183,6 +199,42 @@ class InverseDepthEkf:
         self.P = 0.5 * (self.P + self.P.T)
         self._inject(dx)
         return dx
+
+    def update_columns(
+        self, cols: np.ndarray, H_cols: np.ndarray, residual: np.ndarray, R_meas: np.ndarray
+    ) -> np.ndarray | None:
+        """``update`` for a Jacobian that is zero outside the error-state columns ``cols`` (c,): H_cols is
+        its (m, c) non-zero part. Same result as the dense form, without the (m, n) H and its n^2 products.
+
+        Returns the correction (18+6N,)."""
+        self._flush()
+        cols = np.asarray(cols, int)
+        PHt = self.P[:, cols] @ H_cols.T  # (n, m)
+        S = H_cols @ PHt[cols] + R_meas
+        if len(S) == 1:
+            # scalar measurement (the altimeter): P -= b b^T with b = P H^T / sqrt(S), in place; b b^T is
+            # exactly symmetric, so only the vehicle block (propagated as F P F^T + Q) is symmetrised
+            s = float(S[0, 0])
+            dx = PHt[:, 0] * (float(residual[0]) / s)
+            b = PHt[:, 0] * (1.0 / math.sqrt(s))
+            self.P -= np.outer(b, b)
+            V = VEHICLE_DIM
+            self.P[:V, :V] = 0.5 * (self.P[:V, :V] + self.P[:V, :V].T)
+        else:
+            K = np.linalg.solve(S, PHt.T).T
+            dx = K @ residual
+            self.P = self.P - K @ PHt.T
+            self.P = 0.5 * (self.P + self.P.T)
+        self._inject(dx)
+        return dx
+
+    def innovation_covariance_columns(
+        self, cols: np.ndarray, H_cols: np.ndarray, R_meas: np.ndarray
+    ) -> np.ndarray:
+        """S = H P H^T + R (m, m) for H zero outside ``cols`` (see ``update_columns``)."""
+        self._flush()
+        cols = np.asarray(cols, int)
+        return H_cols @ self.P[np.ix_(cols, cols)] @ H_cols.T + R_meas
 
     def _landmark_columns(self, lm_index: np.ndarray) -> np.ndarray:
         """(k,12) error-state columns (dr, dtheta, then the landmark's 6) of each landmark's 2-row block."""

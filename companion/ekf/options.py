@@ -71,7 +71,10 @@ class EkfOptions:
     sift_contrast_threshold: float = 0.02  # lower than OpenCV's 0.04: icy scenes have little contrast
     sift_edge_threshold: float = 10.0  # OpenCV / Lowe default
     sift_sigma: float = 1.6  # OpenCV / Lowe default
-    detect_scale: float = 1.0  # detect on the image resized by this factor (speed); pixels mapped back
+    # detect on the image resized by this factor, pixels mapped back. 0.5: OpenCV's SIFT first doubles the
+    # image (octave -1), so at 0.5 the pyramid starts at the camera's own resolution; ~2.6x faster than
+    # 1.0 (measured 59 vs 155 ms CPU per 640x480 pair), and what brings the dual pair rate past 10/s
+    detect_scale: float = 0.5
     thermal_low_percentile: float = 1.0  # uint16 thermal -> 8 bit: this percentile maps to 0
     thermal_high_percentile: float = 99.0  # ... and this one to 255 (per frame, robust to hot pixels)
     # --- time handling and health ---

@@ -20,14 +20,13 @@ landmark budget spread evenly over the image (0.5 sqrt(W H / N): 48 px for 32 la
 Scott's rule alone, made for estimating a density, smooths over ~150 px here and hardly tells a
 covered spot from an empty one; the cap makes one landmark "cover" about its share of the image (on
 a uniform candidate set it raises the mean nearest-neighbour distance of 32 new landmarks from 55 to
-75 px, where uniform sampling gives 55). Log densities use log-sum-exp so far-away candidates get a
+75 px, where uniform sampling gives 55). Log densities use log-sum-exp (max-shifted) so far-away candidates get a
 large finite D instead of -log 0.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import logsumexp
 
 
 def budget_bandwidth(image_area_px2: float, n_landmarks: int) -> float:
@@ -50,7 +49,11 @@ def kde_log_density(query_uv: np.ndarray, points_uv: np.ndarray, bandwidth_px: f
     """(N,) log f at (N,2) query pixels of an isotropic Gaussian KDE over (M,2) points (M >= 1)."""
     d2 = np.sum((query_uv[:, None, :] - points_uv[None, :, :]) ** 2, axis=2)
     h2 = bandwidth_px * bandwidth_px
-    return logsumexp(-0.5 * d2 / h2, axis=1) - np.log(len(points_uv) * 2.0 * np.pi * h2)
+    # log-sum-exp over the points, written out (scipy's logsumexp costs ~10x more on these small arrays)
+    x = (-0.5 / h2) * d2
+    m = np.max(x, axis=1)
+    lse = m + np.log(np.sum(np.exp(x - m[:, None]), axis=1))
+    return lse - np.log(len(points_uv) * 2.0 * np.pi * h2)
 
 
 def diversity(

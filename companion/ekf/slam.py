@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.ekf import landmarks as lmk
-from companion.ekf.altimeter import facet_range, select_facet
+from companion.ekf.altimeter import facet_encloses_beam, facet_range, select_facet
 from companion.ekf.features import Detections, match_predicted
 from companion.ekf.filter import VEHICLE_DIM, InverseDepthEkf
 from companion.ekf.options import EkfOptions, cameras_for_mode
@@ -90,6 +90,7 @@ class VisThermalSlam:
         self._desc: dict[int, np.ndarray] = {}
         self._misses: dict[int, int] = {}
         self._last_range: tuple[int, float] | None = None
+        self._facet_ids: np.ndarray | None = None  # lm_id of the altimeter facet in use
         self._frames_since_match = 0
         self.counters = SlamCounters(
             landmarks_added=dict.fromkeys(self.camera_names, 0),
@@ -179,34 +180,43 @@ class VisThermalSlam:
         if ekf.n_landmarks < 3:
             self.counters.altimeter_no_facet += 1
             return
-        valid = ekf.y[:, 5] > 1e-6
-        pts = np.full((ekf.n_landmarks, 3), np.nan)
-        pts[valid] = lmk.to_euclidean(ekf.y[valid])
-        cand = np.flatnonzero(valid)
         R = ekf.R_world_body
-        sel = select_facet(pts[cand], ekf.r, R)
-        if sel is None:
-            self.counters.altimeter_no_facet += 1
-            return
-        idx = cand[sel]
-        fr = facet_range(pts[idx], ekf.r, R, np.zeros(3))
+        # the previous facet while its three landmarks are alive, valid and still around the beam; else a
+        # new Delaunay selection over the whole map
+        idx = None
+        if self._facet_ids is not None:
+            # lm_id is increasing (ids are issued in order, deletion keeps the order)
+            idx = np.minimum(np.searchsorted(ekf.lm_id, self._facet_ids), ekf.n_landmarks - 1)
+            if np.any(ekf.lm_id[idx] != self._facet_ids) or np.any(ekf.y[idx, 5] <= 1e-6):
+                idx = None
+            elif not facet_encloses_beam(lmk.to_euclidean(ekf.y[idx]), ekf.r, R):
+                idx = None
+        if idx is None:
+            valid = ekf.y[:, 5] > 1e-6
+            cand = np.flatnonzero(valid)
+            sel = select_facet(lmk.to_euclidean(ekf.y[cand]), ekf.r, R)
+            if sel is None:
+                self._facet_ids = None
+                self.counters.altimeter_no_facet += 1
+                return
+            idx = cand[sel]
+            self._facet_ids = ekf.lm_id[idx].copy()
+        fr = facet_range(lmk.to_euclidean(ekf.y[idx]), ekf.r, R, np.zeros(3))
         if fr is None:
             self.counters.altimeter_no_facet += 1
             return
-        n = ekf.P.shape[0]
-        H = np.zeros((1, n))
-        H[0, :6] = fr.H_pose[0]
         J = lmk.to_euclidean_jacobian(ekf.y[idx])  # (3,3,6)
-        for k, i in enumerate(idx):
-            H[0, ekf.lm_slice(int(i))] = fr.H_points[k] @ J[k]
+        # H is non-zero only on the pose (dr, dtheta) and the three facet landmarks: 24 columns
+        cols = np.concatenate([np.arange(6), (VEHICLE_DIM + 6 * idx[:, None] + np.arange(6)).ravel()])
+        H = np.concatenate([fr.H_pose[0]] + [fr.H_points[k] @ J[k] for k in range(len(idx))])[None, :]
         sigma2 = self.opts.altimeter_sigma_m**2 + (self.opts.facet_rel_sigma * range_m) ** 2
         Rm = np.array([[sigma2]])
-        S = ekf.innovation_covariance(H, Rm)
+        S = ekf.innovation_covariance_columns(cols, H, Rm)
         res = np.array([range_m - fr.range_m])
         if float(res @ np.linalg.solve(S, res)) > self.opts.altimeter_gate_chi2:
             self.counters.altimeter_rejected += 1
             return
-        ekf.update(H, res, Rm)
+        ekf.update_columns(cols, H, res, Rm)
         self.counters.altimeter_updates += 1
 
     # ------------------------------------------------------------------ frames
