@@ -8,6 +8,7 @@ trajectories (TUM) and a trajectory-vs-truth plot (PNG) into the run directory.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -80,6 +81,40 @@ def plot(run_dir: Path, truth_tum: Path, est_tum: Path, title: str) -> Path:
     return out
 
 
+class StatusWatch:
+    """Keeps the companion's last status message (Zenoh ``companion/status``, as an operator would see it)."""
+
+    def __init__(self, endpoint: str, key: str = "companion/status") -> None:
+        from companion.io.zenoh_io import open_session
+
+        self.last: dict[str, Any] | None = None
+        self.session = open_session("peer", [endpoint], [], False)
+        self.sub = self.session.declare_subscriber(key, self._on)
+
+    def _on(self, sample: Any) -> None:
+        with contextlib.suppress(ValueError):
+            self.last = json.loads(sample.payload.to_bytes())
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.session.close()
+
+
+def estimator_line(status: dict[str, Any] | None) -> str:
+    """One line of the estimator's running totals from a status message ("" if none)."""
+    if not status:
+        return ""
+    c = status.get("estimator", {}).get("counters", {})
+    if "lba_runs" in c:  # terrain_lba: what its back-end did
+        return (
+            f"key frames {c['keyframes']}, LBA runs {c['lba_runs']} ({c['lba_failed']} failed), "
+            f"geo-fixes accepted {c['fix_accepted']} / rejected by the gate {c['fix_rejected']} / "
+            f"failed {c['fix_failed']} of {c['fix_attempts']}, alignments {c['alignments']}, "
+            f"re-initialisations {c['reinit']}"
+        )
+    return ", ".join(f"{k} {v}" for k, v in c.items())
+
+
 def run_demo(a: argparse.Namespace) -> int:
     from sim_bridge.cli import sim_config_from_args
     from sim_bridge.terrain import degrade_dem, make_scene
@@ -87,6 +122,7 @@ def run_demo(a: argparse.Namespace) -> int:
     run_dir = Path(a.out or f"runs/demo-{time.strftime('%Y%m%d-%H%M%S')}").resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
     zport, mport = free_port(socket.SOCK_STREAM), free_port(socket.SOCK_DGRAM)
+    zstatus = free_port(socket.SOCK_STREAM)  # the companion listens here; the demo reads its status
     print(f"run directory: {run_dir}", flush=True)
     print(f"scene {a.scene}: generating terrain and the degraded DEM the companion gets ...", flush=True)
     scene = make_scene(a.scene, seed=a.seed)
@@ -129,7 +165,7 @@ def run_demo(a: argparse.Namespace) -> int:
     ]
     overrides = {
         "zenoh.connect": [f"tcp/127.0.0.1:{zport}"],
-        "zenoh.listen": [],
+        "zenoh.listen": [f"tcp/127.0.0.1:{zstatus}"],
         "mavlink.connection": f"udpout:127.0.0.1:{mport}",
         "dem.path": str(run_dir / "dem.npz"),
         "estimator.kind": a.estimator,
@@ -144,6 +180,7 @@ def run_demo(a: argparse.Namespace) -> int:
     comp_log = open(run_dir / "companion.log", "w")
     sim = subprocess.Popen(sim_cmd, stdout=subprocess.PIPE, stderr=sim_log, text=True, env=env)
     comp: subprocess.Popen | None = None
+    watch: StatusWatch | None = None
     summary: dict[str, Any] | None = None
     try:
         assert sim.stdout is not None
@@ -156,6 +193,7 @@ def run_demo(a: argparse.Namespace) -> int:
                 comp = subprocess.Popen(
                     comp_cmd, stdout=comp_log, stderr=subprocess.STDOUT, text=True, env=env
                 )
+                watch = StatusWatch(f"tcp/127.0.0.1:{zstatus}")
                 print(
                     f"flying: {a.trajectory} over scene {a.scene} ({scene.name}), {a.duration:.0f} s at "
                     f"{a.speed} m/s, {a.height:.0f} m above ground, camera {a.camera_rate:g} Hz; "
@@ -179,7 +217,11 @@ def run_demo(a: argparse.Namespace) -> int:
             elif "done" in msg:
                 summary = msg["done"]
         sim.wait(timeout=30)
+        time.sleep(1.2)  # the companion's next status message, with the flight's last estimates
     finally:
+        status = watch.last if watch is not None else None
+        if watch is not None:
+            watch.close()
         if comp is not None and comp.poll() is None:
             comp.send_signal(signal.SIGINT)
             try:
@@ -203,11 +245,16 @@ def run_demo(a: argparse.Namespace) -> int:
         f"({100.0 * accepted / max(published, 1):.1f} %), rejected {summary['rejected']}, "
         f"distance flown {summary['distance_m']:.0f} m"
     )
+    line = estimator_line(status)
+    if line:
+        print(f"companion estimator {a.estimator}: {line}")
     if accepted == 0:
         print("no estimate reached the autopilot: see companion.log")
         return 1
     stats = ape_table(truth, est)
-    (run_dir / "ape.json").write_text(json.dumps({"ape_m": stats, **summary}, indent=2))
+    (run_dir / "ape.json").write_text(
+        json.dumps({"ape_m": stats, **summary, "companion_status": status}, indent=2, default=float)
+    )
     png = plot(run_dir, truth, est, f"scene {a.scene} {a.trajectory}, {a.estimator}")
     print()
     print("absolute position error (evo APE, translation, no alignment), metres")
