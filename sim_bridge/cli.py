@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     ps.add_argument("--out", default="runs/sim", help="directory for truth.tum, estimate.tum, summary")
     pd = sub.add_parser("demo", help="fly the companion against the simulator on loopback (README main job)")
     _add_sim_args(pd)
-    pd.add_argument("--estimator", default="georef", choices=["georef", "terrain_lba"])
+    pd.add_argument("--estimator", default="terrain_lba", choices=["georef", "terrain_lba"])
     pd.add_argument("--out", default=None, help="run directory (default runs/demo-<time>)")
     pd.add_argument("--config", default="configs/sim_mars.toml", help="companion config template")
     from sim_bridge.recording import add_record_parser, add_replay_parser

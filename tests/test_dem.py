@@ -46,3 +46,23 @@ def test_resampled_keeps_the_placement() -> None:
     north, east = rng.uniform(n0, n1, 500), rng.uniform(e0, e1, 500)
     # area averaging a plane is still the same plane, so the placement must match to the millimetre
     np.testing.assert_allclose(coarse.height_at(north, east), dem.height_at(north, east), atol=5e-3)
+
+
+def test_height_above_ground_from_a_tilted_range_on_a_slope() -> None:
+    # ground rises 0.3 m per metre east; the vehicle is 100 m above the point below it and rolls 5 deg, so
+    # its downward beam hits the slope east of that point, closer than 100 m / cos(5 deg)
+    from companion.geometry import rot_from_rpy
+
+    n = 401
+    east = (np.arange(n) - 200) * 1.0
+    dem = Dem(np.tile(0.3 * east, (n, 1)).astype(np.float32), 200.0, -200.0, 1.0)
+    R = rot_from_rpy(np.radians(5.0), 0.0, 0.0)
+    d = R[:, 2]
+    p = np.array([0.0, 0.0, -100.0])
+    t = 100.0 / (d[2] + 0.3 * d[1])  # where -100 + t d_z = -0.3 (t d_e)
+    assert abs(dem.height_above_ground(p, R, t) - 100.0) < 1e-3
+    # the cosine alone is off by the DEM step (several metres here)
+    assert abs(t * d[2] - 100.0) > 2.0
+    # off the raster: the cosine term only
+    far = np.array([0.0, 5000.0, -100.0])
+    assert dem.height_above_ground(far, R, 50.0) == 50.0 * d[2]

@@ -206,9 +206,9 @@ class GeorefEstimator:
         R = rot_from_rpy(*rpy)
         self._predict(t)
         rng = self._range.nearest(t, max_gap_us=200_000)
-        # the altimeter ranges along body down; the fix wants vertical height above ground
-        agl = None if rng is None else float(rng) * float(R[2, 2])
         p_pred = self._x[:3].copy()
+        # the altimeter ranges along body down; the fix wants the height above the ground below
+        agl = None if rng is None else self.geo.dem.height_above_ground(p_pred, R, float(rng))
         fix = self.geo.locate(frame.image, R, p_pred, alt_agl_m=agl)
         accepted = False
         if fix.ok:

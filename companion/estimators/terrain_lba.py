@@ -284,7 +284,7 @@ class TerrainLbaEstimator:
             image=extra["image"] if self.opt.w_geo > 0 else None,
             R_world_body=R_wb,
             p_body_in_world=T[:3, :3] @ self.p_body_in_cam + T[:3, 3],
-            alt_agl_m=None if rng is None else self._height_above_ground(T[:3, 3], R_wb, float(rng)),
+            alt_agl_m=None if rng is None else self._dem.height_above_ground(T[:3, 3], R_wb, float(rng)),
             range_m=None if rng is None else float(rng),
             dist_since_prev_kf_m=d_prev,
             p_body_in_cam=self.p_body_in_cam,
@@ -430,19 +430,6 @@ class TerrainLbaEstimator:
             status=EstimateStatus.OK,
             info=info,
         )
-
-    def _height_above_ground(self, p_body: np.ndarray, R_world_body: np.ndarray, range_m: float) -> float:
-        """Vertical height above the ground below the vehicle from the altimeter's slant range.
-
-        The altimeter ranges along body down; when the body tilts, it hits the ground beside the point
-        below (3.5 m aside for 2 deg at 100 m), whose elevation differs on a slope. Eq. 18 wants the height
-        over the point below: range * cos(tilt) plus the DEM step between the hit point and that point."""
-        down = R_world_body[:, 2]
-        h_vert = range_m * float(down[2])
-        hit = p_body + range_m * down
-        dh = self._dem.height_at(np.array([hit[0], p_body[0]]), np.array([hit[1], p_body[1]]))
-        step = float(dh[0] - dh[1])
-        return h_vert + step if np.isfinite(step) else h_vert
 
     def _range_from_dem(self, p_body: np.ndarray, R_world_body: np.ndarray) -> float | None:
         """Without an altimeter: range along body down to the DEM below ``p_body`` (flat-ground model)."""

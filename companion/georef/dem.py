@@ -111,6 +111,22 @@ class Dem:
         f[holes] = blurred[holes]
         return Dem(f, self.north0_m, self.east0_m, self.cell_m)
 
+    def height_above_ground(self, p_world: np.ndarray, R_world_body: np.ndarray, range_m: float) -> float:
+        """Vertical height of ``p_world`` (NED) above the ground straight below it, from a range measured
+        along body down (a downward altimeter).
+
+        When the body tilts the beam hits the ground beside the point below (3.5 m aside at 2 deg and
+        100 m), whose elevation differs on a slope: range * cos(tilt) is the height above the hit point,
+        plus the DEM step from the hit point to the point below. Without a DEM step (holes, off the
+        raster) the cosine term alone."""
+        down = np.asarray(R_world_body, float)[:, 2]
+        p = np.asarray(p_world, float)
+        h_vert = float(range_m) * float(down[2])
+        hit = p + float(range_m) * down
+        dh = self.height_at(np.array([hit[0], p[0]]), np.array([hit[1], p[1]]))
+        step = float(dh[0] - dh[1])
+        return h_vert + step if np.isfinite(step) else h_vert
+
     def crop(self, north_m: float, east_m: float, half_size_m: float) -> Dem:
         """Sub-raster of cells within ``half_size_m`` of (north, east), clipped to the raster."""
         r, c = self.rc_from_ne(north_m, east_m)
