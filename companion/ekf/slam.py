@@ -189,19 +189,23 @@ class VisThermalSlam:
             idx = np.minimum(np.searchsorted(ekf.lm_id, self._facet_ids), ekf.n_landmarks - 1)
             if np.any(ekf.lm_id[idx] != self._facet_ids) or np.any(ekf.y[idx, 5] <= 1e-6):
                 idx = None
-            elif not facet_encloses_beam(lmk.to_euclidean(ekf.y[idx]), ekf.r, R):
-                idx = None
+            else:
+                pts = lmk.to_euclidean(ekf.y[idx])
+                if not facet_encloses_beam(pts, ekf.r, R):
+                    idx = None
         if idx is None:
             valid = ekf.y[:, 5] > 1e-6
             cand = np.flatnonzero(valid)
-            sel = select_facet(lmk.to_euclidean(ekf.y[cand]), ekf.r, R)
+            pts_all = lmk.to_euclidean(ekf.y[cand])
+            sel = select_facet(pts_all, ekf.r, R)
             if sel is None:
                 self._facet_ids = None
                 self.counters.altimeter_no_facet += 1
                 return
             idx = cand[sel]
+            pts = pts_all[sel]
             self._facet_ids = ekf.lm_id[idx].copy()
-        fr = facet_range(lmk.to_euclidean(ekf.y[idx]), ekf.r, R, np.zeros(3))
+        fr = facet_range(pts, ekf.r, R, np.zeros(3))
         if fr is None:
             self.counters.altimeter_no_facet += 1
             return

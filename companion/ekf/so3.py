@@ -15,13 +15,15 @@ import numpy as np
 
 def skew(v: np.ndarray) -> np.ndarray:
     """3x3 matrix [v]x with [v]x @ w = v x w."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    x, y, z = np.asarray(v, float).tolist()
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product p (x) q of (4,) quaternions (w, x, y, z)."""
-    pw, px, py, pz = p
-    qw, qx, qy, qz = q
+    # Python floats: the same IEEE arithmetic without the numpy-scalar overhead (IMU-rate code)
+    pw, px, py, pz = np.asarray(p, float).tolist()
+    qw, qx, qy, qz = np.asarray(q, float).tolist()
     return np.array(
         [
             pw * qw - px * qx - py * qy - pz * qz,
@@ -34,11 +36,12 @@ def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def quat_exp(theta: np.ndarray) -> np.ndarray:
     """(4,) unit quaternion Exp(theta) of a rotation vector (3,) in radians."""
-    a = math.sqrt(float(theta[0] ** 2 + theta[1] ** 2 + theta[2] ** 2))
+    t0, t1, t2 = np.asarray(theta, float).tolist()
+    a = math.sqrt(t0**2 + t1**2 + t2**2)
     if a < 1e-10:
-        return np.array([1.0, 0.5 * theta[0], 0.5 * theta[1], 0.5 * theta[2]])
+        return np.array([1.0, 0.5 * t0, 0.5 * t1, 0.5 * t2])
     s = math.sin(0.5 * a) / a
-    return np.array([math.cos(0.5 * a), s * theta[0], s * theta[1], s * theta[2]])
+    return np.array([math.cos(0.5 * a), s * t0, s * t1, s * t2])
 
 
 def quat_normalised(q: np.ndarray) -> np.ndarray:
@@ -49,7 +52,7 @@ def quat_normalised(q: np.ndarray) -> np.ndarray:
 
 def rot_from_quat(q: np.ndarray) -> np.ndarray:
     """3x3 rotation matrix of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = q
+    w, x, y, z = np.asarray(q, float).tolist()
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
