@@ -36,7 +36,6 @@ from bench.common import parser, table, write_json
 from companion.constants import GRAVITY_MPS2, R_BODY_CAM_NADIR
 from companion.estimators.terrain_lba import TerrainLbaEstimator, TerrainLbaOptions
 from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
-from companion.georef.dem import Dem
 from companion.types import AltimeterSample, AttitudeSample, Frame
 from sim_bridge.autopilot_link import SimNoise
 from sim_bridge.render import VisibleRenderer
@@ -74,26 +73,6 @@ def make_trajectory(kind: str, duration_s: float, ground_m: float) -> Trajectory
     if kind == "scanning":
         return scanning((-120.0, -150.0), 240.0, 60.0, alt, SPEED_MPS, duration_s, gravity_mps2=g)
     raise ValueError(f"unknown trajectory {kind!r}")
-
-
-def range_to_ground(dem: Dem, p: np.ndarray, d: np.ndarray, t_max: float = 1000.0) -> float:
-    """Distance along the unit ray p + t d to the first terrain hit (marching, then bisection)."""
-    ts = np.linspace(0.0, t_max, 2001)
-    pts = p[None, :] + ts[:, None] * d[None, :]
-    h = dem.height_at(pts[:, 0], pts[:, 1])
-    below = pts[:, 2] > -h  # NED: below the ground when z > -height
-    i = int(np.argmax(below))
-    if not below[i]:
-        return float("nan")
-    a, b = ts[max(i - 1, 0)], ts[i]
-    for _ in range(30):
-        m = 0.5 * (a + b)
-        q = p + m * d
-        if q[2] > -float(dem.height_at(q[0], q[1])[0]):
-            b = m
-        else:
-            a = m
-    return 0.5 * (a + b)
 
 
 def ape_stats(t_ref: np.ndarray, p_ref: np.ndarray, t_est: np.ndarray, p_est: np.ndarray) -> dict[str, Any]:
@@ -167,7 +146,7 @@ class Simulation:
                 0.0, [n.roll_pitch_rad, n.roll_pitch_rad, n.yaw_rad]
             )
             att = AttitudeSample(stamp, float(rpy[0]), float(rpy[1]), float(rpy[2] + self.yaw_bias))
-            r = range_to_ground(self.scene.dem, s.p_world, s.R_world_body[:, 2])
+            r = self.scene.dem.beam_range(s.p_world, s.R_world_body[:, 2])
             r += self.rng.normal(0.0, n.range_m + n.range_frac * r)
             yield float(t), att, AltimeterSample(stamp, float(r)), Frame(stamp, "nadir", img, k)
 

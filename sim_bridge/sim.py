@@ -185,31 +185,13 @@ class SimVehicle:
     def _sim_t(self, t_us: int) -> float:
         return 0.0 if self.t0_us is None else (t_us - self.t0_us) * 1e-6
 
-    def _beam_range(self, p_world: np.ndarray, R_world_body: np.ndarray) -> float:
-        """What a downward altimeter reads: the distance along body down to the true surface (NaN off the
-        scene or tilted beyond 78 deg). Fixed-point iteration on the beam's hit point; it converges while
-        slope * tan(tilt) < 1, which holds for every scene at the trajectories' tilts."""
-        d = R_world_body[:, 2]
-        dem = self.scene.dem
-        ground = float(dem.height_at(p_world[0], p_world[1])[0])
-        if d[2] < 0.2 or not np.isfinite(ground):
-            return float("nan")
-        t = (-p_world[2] - ground) / d[2]
-        for _ in range(8):
-            q = p_world + t * d
-            g = float(dem.height_at(q[0], q[1])[0])
-            if not np.isfinite(g):
-                return float("nan")
-            t = (-p_world[2] - g) / d[2]
-        return float(t)
-
     def _truth(self, t_us: int) -> dict[str, Any]:
         s = self.traj.state_at(self._sim_t(t_us))
         R = s.R_world_body
         if self.cfg.world == "europa":
             rng_m = self.europa.range_m(s)
         else:
-            rng_m = self._beam_range(s.p_world, R)
+            rng_m = self.scene.dem.beam_range(s.p_world, R[:, 2])  # what a downward lidar reads
         return {
             "rpy_rad": rpy_from_rot(R),
             "p_ned_m": s.p_world,

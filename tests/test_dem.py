@@ -60,6 +60,7 @@ def test_height_above_ground_from_a_tilted_range_on_a_slope() -> None:
     d = R[:, 2]
     p = np.array([0.0, 0.0, -100.0])
     t = 100.0 / (d[2] + 0.3 * d[1])  # where -100 + t d_z = -0.3 (t d_e)
+    assert abs(dem.beam_range(p, d) - t) < 1e-3
     assert abs(dem.height_above_ground(p, R, t) - 100.0) < 1e-3
     # the cosine alone is off by the DEM step (several metres here)
     assert abs(t * d[2] - 100.0) > 2.0

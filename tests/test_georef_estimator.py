@@ -35,8 +35,7 @@ def feed(est: GeorefEstimator, scene, traj, renderer, t_s: float, image: np.ndar
     t_us = int(round(t_s * 1e6))
     rpy = rpy_from_rot(s.R_world_body)
     est.on_attitude(AttitudeSample(t_us, *rpy))
-    ground = scene.dem.height_at(s.p_world[0], s.p_world[1])[0]
-    est.on_altimeter(AltimeterSample(t_us, float((-s.p_world[2] - ground) / s.R_world_body[2, 2])))
+    est.on_altimeter(AltimeterSample(t_us, scene.dem.beam_range(s.p_world, s.R_world_body[:, 2])))
     if image is None:
         R_wc, p_c = camera_pose(s.R_world_body, s.p_world)
         image = renderer.render(R_wc, p_c, seed=t_us)

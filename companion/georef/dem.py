@@ -127,6 +127,29 @@ class Dem:
         step = float(dh[0] - dh[1])
         return h_vert + step if np.isfinite(step) else h_vert
 
+    def beam_range(self, p_world: np.ndarray, direction: np.ndarray, max_range_m: float = 1000.0) -> float:
+        """Distance from ``p_world`` (NED) along the unit ``direction`` (NED) to the first surface hit, as a
+        range finder reads it; NaN when the beam leaves the raster or meets nothing within ``max_range_m``.
+        Marches in steps of half a cell, then bisects the crossing to a millimetre."""
+        p = np.asarray(p_world, float)
+        d = np.asarray(direction, float)
+        ts = np.arange(0.0, max_range_m + self.cell_m, 0.5 * self.cell_m)
+        pts = p[None, :] + ts[:, None] * d[None, :]
+        h = self.height_at(pts[:, 0], pts[:, 1])
+        below = pts[:, 2] > -h  # NED: under the surface when z > -elevation (NaN compares False)
+        i = int(np.argmax(below))
+        if not below[i] or np.isnan(h[: i + 1]).any():
+            return float("nan")
+        lo, hi = float(ts[max(i - 1, 0)]), float(ts[i])
+        while hi - lo > 1e-3:
+            mid = 0.5 * (lo + hi)
+            q = p + mid * d
+            if q[2] > -float(self.height_at(q[0], q[1])[0]):
+                hi = mid
+            else:
+                lo = mid
+        return 0.5 * (lo + hi)
+
     def crop(self, north_m: float, east_m: float, half_size_m: float) -> Dem:
         """Sub-raster of cells within ``half_size_m`` of (north, east), clipped to the raster."""
         r, c = self.rc_from_ne(north_m, east_m)
