@@ -90,6 +90,9 @@ def ape_stats(t_ref: np.ndarray, p_ref: np.ndarray, t_est: np.ndarray, p_est: np
     ape.process_data((ref, est))
     s = ape.get_all_statistics()
     out.update({k: float(s[k]) for k in STAT_KEYS})
+    d = est.positions_xyz - ref.positions_xyz  # NED: the split says whether height or position dominates
+    out["horizontal_mean"] = float(np.mean(np.hypot(d[:, 0], d[:, 1])))
+    out["vertical_mean"] = float(np.mean(np.abs(d[:, 2])))
     est_al = copy.deepcopy(est)
     est_al.align(ref, correct_scale=False)
     ape_al = metrics.APE(metrics.PoseRelation.translation_part)

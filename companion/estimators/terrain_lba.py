@@ -26,6 +26,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy.stats import trim_mean
 
 from companion.geometry import CameraIntrinsics
 from companion.georef.dem import Dem
@@ -212,6 +213,9 @@ class TerrainLbaEstimator:
                 raise RuntimeError("terrain_lba back-end worker did not start")
         self._attitude = _History()
         self._range = _History()
+        # altimeter samples not yet turned into altitude offsets, and the offsets since the last key frame
+        self._alt_pending: deque[tuple[int, float]] = deque(maxlen=200)
+        self._alt_offsets: list[float] = []
         self.frame_index = -1
         self.epoch = 0
         self.reset_counter = 0
@@ -250,6 +254,32 @@ class TerrainLbaEstimator:
     def on_altimeter(self, s: AltimeterSample) -> None:
         if np.isfinite(s.range_m) and s.range_m > 0:
             self._range.add(s.stamp_us, float(s.range_m))
+            self._alt_pending.append((s.stamp_us, float(s.range_m)))
+
+    def _altitude_offsets(self, t_us: int, p_body: np.ndarray, R_world_body: np.ndarray) -> None:
+        """Turn the altimeter samples up to this frame into offsets between the altitude they measure
+        (DEM below + height above it) and the VO's altitude at this frame.
+
+        One sample is noisy (a 1 % range finder: 1 m at 100 m) but the VO's altitude is smooth over a key
+        frame interval, so the key frame's geo-fix gets the mean offset of the ~20 samples since the
+        previous key frame instead of one sample: its height error shrinks about sqrt(20) times."""
+        lo = t_us - self.opt.altimeter_max_age_us
+        ground = float(self._dem.height_at(p_body[0], p_body[1])[0])
+        while self._alt_pending and self._alt_pending[0][0] <= t_us:
+            stamp, rng = self._alt_pending.popleft()
+            if stamp < lo or not np.isfinite(ground):
+                continue
+            altitude = ground + self._dem.height_above_ground(p_body, R_world_body, rng)
+            self._alt_offsets.append(altitude + float(p_body[2]))  # altitude minus the VO's (-z)
+
+    def _key_frame_agl(self, p_body: np.ndarray) -> float | None:
+        """Height above the ground below ``p_body`` (a key frame's VO position) from the offsets gathered
+        since the previous key frame (trimmed mean: a DEM hole or a stray echo does not pull it)."""
+        if not self._alt_offsets:
+            return None
+        offset = float(trim_mean(np.asarray(self._alt_offsets), 0.1))
+        ground = float(self._dem.height_at(p_body[0], p_body[1])[0])
+        return None if not np.isfinite(ground) else -float(p_body[2]) + offset - ground
 
     def close(self) -> None:
         if self._proc is not None:
@@ -284,7 +314,9 @@ class TerrainLbaEstimator:
             image=extra["image"] if self.opt.w_geo > 0 else None,
             R_world_body=R_wb,
             p_body_in_world=T[:3, :3] @ self.p_body_in_cam + T[:3, 3],
-            alt_agl_m=None if rng is None else self._dem.height_above_ground(T[:3, 3], R_wb, float(rng)),
+            alt_agl_m=extra["agl_m"]
+            if extra["agl_m"] is not None
+            else (None if rng is None else self._dem.height_above_ground(T[:3, 3], R_wb, float(rng))),
             range_m=None if rng is None else float(rng),
             dist_since_prev_kf_m=d_prev,
             p_body_in_cam=self.p_body_in_cam,
@@ -325,6 +357,7 @@ class TerrainLbaEstimator:
             self._fe["backend_stale"] += 1
             return  # the map it refers to was reset
         self._fe["backend_applied"] += 1
+        self._alt_offsets = []  # the map moved: offsets against the old VO altitude no longer apply
         self.vo.apply_correction(
             res.newest_kf,
             res.T_align,
@@ -363,6 +396,7 @@ class TerrainLbaEstimator:
         self._wanted = None
         self._kf_frame.clear()
         self._cov_kf = None
+        self._alt_offsets = []
 
     def on_frames(self, frames: dict[str, Frame]) -> PoseEstimate | None:
         frame = frames.get("nadir")
@@ -398,13 +432,15 @@ class TerrainLbaEstimator:
         if self._last_p_body is not None:
             self._dist_m += float(np.linalg.norm(p_body - self._last_p_body))
         self._last_p_body = p_body
+        self._altitude_offsets(t, p_body, R_wb)
         if st.keyframe_id is not None:
             k = st.keyframe_id
             self._fe["keyframes"] += 1
             self._kf_dist[k] = self._dist_m
             for old in [kk for kk in self._kf_dist if kk < k - 4 * self.opt.vo.max_keyframes_kept]:
                 del self._kf_dist[old]
-            self._kf_frame = {k: {"image": frame.image, "range_m": rng}}
+            self._kf_frame = {k: {"image": frame.image, "range_m": rng, "agl_m": self._key_frame_agl(p_body)}}
+            self._alt_offsets = []
             self._wanted = k
         else:
             # the snapshot and the job go out one frame after the key frame, whose own frame already
