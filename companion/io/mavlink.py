@@ -601,7 +601,6 @@ class MavlinkLink:
             log.exception("mavlink link: callback failed")
 
     def _autopilot_reset(self, reason: str) -> None:
-        self.resets[reason] = self.resets.get(reason, 0) + 1
         log.warning("autopilot reset detected (%s): time sync restarts", reason)
         if reason != "timesync_jump":
             self.timesync.reset()
@@ -613,12 +612,14 @@ class MavlinkLink:
             and mono - self._last_reboot_mono < self.options.reboot_coalesce_s
         )
         self._last_reboot_mono = mono
-        if same:
-            return
-        self.reboots += 1
-        with self._lock:
-            self._reset_flag = True
-        self._call(self.callbacks.on_autopilot_reset, reason)
+        if not same:
+            self.reboots += 1
+            with self._lock:
+                self._reset_flag = True
+        # counted last: whoever sees the count sees the flag already set
+        self.resets[reason] = self.resets.get(reason, 0) + 1
+        if not same:
+            self._call(self.callbacks.on_autopilot_reset, reason)
 
     def _handle(self, msg: Any) -> None:
         name = msg.get_type()
