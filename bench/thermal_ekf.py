@@ -117,7 +117,7 @@ def improvement(e_a: float, e_b: float) -> float:
     return float((e_a - e_b) / e_a * 100.0) if e_a else float("nan")
 
 
-def run_trial(name: str, trial: int, seed: int) -> dict[str, Any]:
+def run_trial(name: str, trial: int, seed: int, detect_scale: float | None = None) -> dict[str, Any]:
     """Render, detect once, run every configuration; returns per-config E and timings."""
     cv2.setNumThreads(1)
     from sim_bridge.europa.sensors import altimeter_samples
@@ -135,7 +135,7 @@ def run_trial(name: str, trial: int, seed: int) -> dict[str, Any]:
     t_frames = np.arange(traj.t0_s, traj.t1_s + 1e-9, 1.0 / CAMERA_HZ)
     states = traj.states(t_frames)
     # render + SIFT once; the same detections feed every configuration (timed for pairs_per_s)
-    base = BENCH_OPTIONS
+    base = BENCH_OPTIONS if detect_scale is None else replace(BENCH_OPTIONS, detect_scale=detect_scale)
     det = {c: SiftDetector(base) for c in ("visible", "thermal")}
     frames = []
     t_render = t_sift = 0.0
@@ -190,10 +190,11 @@ def run_trial(name: str, trial: int, seed: int) -> dict[str, Any]:
     out["sift_s_per_pair"] = t_sift / n
     # dual pair rate: SIFT on both images + the dual filter step
     out["pair_s"] = t_sift / n + out["dual"]["filter_s_per_frame"]
+    out["detect_scale"] = base.detect_scale
     return out
 
 
-def _run_job(job: tuple[str, int, int]) -> dict[str, Any]:
+def _run_job(job: tuple[str, int, int, float | None]) -> dict[str, Any]:
     return run_trial(*job)
 
 
@@ -245,7 +246,7 @@ def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]
     return {"trajectories": per, "average": avg}
 
 
-def daemon_path_rate(n_pairs: int = 60) -> dict[str, Any]:
+def daemon_path_rate(n_pairs: int = 60, detect_scale: float | None = None) -> dict[str, Any]:
     """Frame pairs per second through ``VisThermalEkfEstimator.on_frames`` in dual mode (the daemon's path:
     both SIFT detections in parallel threads, then the filter step), on pre-rendered frames of trajectory 1,
     with IMU and altimeter samples fed between frames as the daemon does. Measured alone (no bench workers)."""
@@ -271,7 +272,7 @@ def daemon_path_rate(n_pairs: int = 60) -> dict[str, Any]:
     passes = []
     for _ in range(3):  # best of three passes: the other jobs on this machine only ever slow us down
         est = VisThermalEkfEstimator(
-            BENCH_OPTIONS,
+            BENCH_OPTIONS if detect_scale is None else replace(BENCH_OPTIONS, detect_scale=detect_scale),
             {"visible": intr, "thermal": intr},
             {"visible": R_BODY_CAM_NADIR, "thermal": R_BODY_CAM_NADIR},
             st0.p_world,
@@ -323,6 +324,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--trials-wall-s", type=float, default=None, help="with --from-runs: wall time of those runs"
     )
+    p.add_argument(
+        "--detect-scale",
+        type=float,
+        default=None,
+        help=f"SIFT on the image scaled by this (default the estimator's, {BENCH_OPTIONS.detect_scale})",
+    )
     a = p.parse_args(argv)
     names = (
         a.trajectories.split(",")
@@ -330,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
         else (["1", "6"] if a.quick else [str(i) for i in range(1, 11)])
     )
     trials = a.trials if a.trials is not None else (3 if a.quick else 30)
-    jobs = [(n, k, a.seed) for k in range(trials) for n in names]
+    jobs = [(n, k, a.seed, a.detect_scale) for k in range(trials) for n in names]
     t0 = time.perf_counter()
     results: list[dict[str, Any]] = []
     n_resumed = 0
@@ -385,7 +392,7 @@ def main(argv: list[str] | None = None) -> int:
     print(table(["traj", "E kde %", "E uniform %", "I uniform->kde %", "d"], rows3,
                 "Dual mode: diversity (KDE, eq. 8) vs uniform landmark sampling, same trials"))  # fmt: skip
     pair_s = np.array([r["pair_s"] for r in results])
-    rate = daemon_path_rate()
+    rate = daemon_path_rate(detect_scale=a.detect_scale)
     timing = {
         "pairs_per_s": rate["pairs_per_s"],
         "pairs_per_s_from_mean_time": rate["pairs_per_s_mean"],
@@ -421,6 +428,7 @@ def main(argv: list[str] | None = None) -> int:
             "altimeter_hz": ALTIMETER_HZ,
             "world_seed": WORLD_SEED,
             "seed": a.seed,
+            "detect_scale": BENCH_OPTIONS.detect_scale if a.detect_scale is None else a.detect_scale,
             "E": "OLS slope (with intercept) of position-error norm vs distance travelled, percent",
             "cohens_d": "paired: mean(E_a - E_b) / std(E_a - E_b, ddof=1); positive = second better",
             "summarised_from_runs_log": a.from_runs is not None,
