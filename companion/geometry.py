@@ -10,20 +10,34 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from companion.constants import R_BODY_CAM_NADIR
 
 
 def rot_from_rpy(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
-    """3x3 R_world_body from roll, pitch, yaw (NED/FRD, intrinsic Z-Y-X)."""
-    return Rotation.from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad]).as_matrix()
+    """3x3 R_world_body = Rz(yaw) Ry(pitch) Rx(roll) (NED/FRD, intrinsic Z-Y-X).
+
+    Written out rather than through SciPy's Rotation: this runs for every attitude sample and frame, and
+    Rotation's per-call overhead is several times the arithmetic."""
+    cr, sr = np.cos(roll_rad), np.sin(roll_rad)
+    cp, sp = np.cos(pitch_rad), np.sin(pitch_rad)
+    cy, sy = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 def rpy_from_rot(R_world_body: np.ndarray) -> np.ndarray:
-    """(3,) roll, pitch, yaw in radians from a 3x3 R_world_body."""
-    yaw, pitch, roll = Rotation.from_matrix(R_world_body).as_euler("ZYX")
-    return np.array([roll, pitch, yaw])
+    """(3,) roll, pitch, yaw in radians from a 3x3 R_world_body (intrinsic Z-Y-X; at pitch +-90 deg, where
+    roll and yaw are not separable, roll takes what arctan2 gives)."""
+    R = R_world_body
+    return np.array(
+        [np.arctan2(R[2, 1], R[2, 2]), -np.arcsin(np.clip(R[2, 0], -1.0, 1.0)), np.arctan2(R[1, 0], R[0, 0])]
+    )
 
 
 def wrap_pi(angle_rad: np.ndarray | float) -> np.ndarray | float:

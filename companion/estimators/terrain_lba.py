@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import trim_mean
 
-from companion.geometry import CameraIntrinsics
+from companion.geometry import CameraIntrinsics, rot_from_rpy, rpy_from_rot
 from companion.georef.dem import Dem
 from companion.georef.georef import GeoReferencer, GeorefOptions
 from companion.georef.shading import Sun
@@ -113,33 +113,6 @@ def _worker_main(conn: Any, options: BackendOptions, geo_args: tuple | None) -> 
             conn.send(backend.process(job))
         except Exception as e:  # noqa: BLE001 - reported to the front-end, counted, never fatal
             conn.send(f"{type(e).__name__}: {e}")
-
-
-def _rot_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """R_world_body = Rz(yaw) Ry(pitch) Rx(roll) (as companion.geometry.rot_from_rpy, without SciPy's
-    per-call overhead: this runs for every attitude sample and every frame)."""
-    cr, sr, cp, sp, cy, sy = (
-        np.cos(roll),
-        np.sin(roll),
-        np.cos(pitch),
-        np.sin(pitch),
-        np.cos(yaw),
-        np.sin(yaw),
-    )
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
-
-
-def _rpy_from_rot(R: np.ndarray) -> np.ndarray:
-    """(roll, pitch, yaw) of R_world_body, intrinsic Z-Y-X (as companion.geometry.rpy_from_rot)."""
-    return np.array(
-        [np.arctan2(R[2, 1], R[2, 2]), -np.arcsin(np.clip(R[2, 0], -1.0, 1.0)), np.arctan2(R[1, 0], R[0, 0])]
-    )
 
 
 class _History:
@@ -407,13 +380,11 @@ class TerrainLbaEstimator:
         t = frame.stamp_us
         self._collect()
         rpy_att = self._attitude.nearest(t, self.opt.attitude_max_age_us)
-        R_wb_att = None if rpy_att is None else _rot_from_rpy(*rpy_att)
+        R_wb_att = None if rpy_att is None else rot_from_rpy(*rpy_att)
         if R_wb_att is None:
             self._fe["no_attitude"] += 1
             if self.vo.state != "tracking":
-                R_wb_att = (
-                    _rot_from_rpy(0.0, 0.0, self.initial_yaw_rad) if self._last_p_body is None else None
-                )
+                R_wb_att = rot_from_rpy(0.0, 0.0, self.initial_yaw_rad) if self._last_p_body is None else None
         R_wc_att = None if R_wb_att is None else R_wb_att @ self.R_body_cam
         rng = self._range.nearest(t, self.opt.altimeter_max_age_us)
         p_start = self.initial_p_world if self._last_p_body is None else self._last_p_body
@@ -459,7 +430,7 @@ class TerrainLbaEstimator:
         return PoseEstimate(
             stamp_us=t,
             p_body_in_world_m=p_body,
-            rpy_rad=_rpy_from_rot(R_wb),
+            rpy_rad=rpy_from_rot(R_wb),
             covariance=self._covariance(),
             reset_counter=self.reset_counter,
             quality=float(min(1.0, st.n_inliers / max(self.opt.vo.tracker.max_features, 1))),

@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from companion.constants import R_BODY_CAM_NADIR
-from companion.geometry import CameraIntrinsics, wrap_pi
+from companion.geometry import CameraIntrinsics, rot_from_rpy, wrap_pi
 from companion.georef import illumination, phase
 from companion.georef.dem import Dem
 from companion.georef.reference import OrthoGrid, ReferenceMap
@@ -164,12 +164,6 @@ def _fail(reason: str, t0: float, gsd_m: float = float("nan")) -> GeoFix:
         cov_ne_m2=np.full((2, 2), np.nan),
         ms=(time.perf_counter() - t0) * 1e3,
     )
-
-
-def _rot_z(angle_rad: float) -> np.ndarray:
-    """Rotation about world down (NED z): positive = clockwise seen from above (yaw increase)."""
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class GeoReferencer:
@@ -436,7 +430,7 @@ class GeoReferencer:
             rotation, scale, rs_quality = res
             if rs_quality < self.opt.min_quality:
                 return _fail(REASON_LOW_QUALITY, t0, gsd0)
-            R = _rot_z(rotation) @ R
+            R = rot_from_rpy(0.0, 0.0, rotation) @ R  # about world down: a yaw increase
             # what the search pins down is the camera elevation (ground below the prediction + height);
             # from here on it is kept, and the reported scale is re-expressed at the final position
             alt_cam = h0 + agl * scale
@@ -519,7 +513,7 @@ class GeoReferencer:
             key = (round(rotation, 9), round(scale, 9))
             if key not in cache:
                 agl_c = agl * scale
-                pc = self.rectify(img_w, _rot_z(rotation) @ R, ne, ground + agl_c, agl_c)
+                pc = self.rectify(img_w, rot_from_rpy(0.0, 0.0, rotation) @ R, ne, ground + agl_c, agl_c)
                 cache[key] = -1.0 if isinstance(pc, str) else self.correlate(pc, refine=False)[1].peak
             return cache[key]
 

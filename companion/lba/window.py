@@ -27,6 +27,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
+from companion.geometry import rpy_from_rot
+
 _DOWN_WORLD = np.array([0.0, 0.0, 1.0])  # NED: gravity points along +z
 
 
@@ -234,11 +236,7 @@ def body_covariance(
     def body(T: np.ndarray) -> np.ndarray:
         R_wb = T[:3, :3] @ R_body_cam.T
         p = T[:3, :3] @ p_body_in_cam + T[:3, 3]
-        # intrinsic Z-Y-X Euler angles (companion.geometry.rpy_from_rot), written out: 12 calls per result
-        roll = np.arctan2(R_wb[2, 1], R_wb[2, 2])
-        pitch = -np.arcsin(np.clip(R_wb[2, 0], -1.0, 1.0))
-        yaw = np.arctan2(R_wb[1, 0], R_wb[0, 0])
-        return np.array([p[0], p[1], p[2], roll, pitch, yaw])
+        return np.concatenate([p, rpy_from_rot(R_wb)])
 
     pose = gtsam.Pose3(T_world_cam)
     J = np.zeros((6, 6))
