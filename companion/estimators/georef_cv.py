@@ -6,13 +6,12 @@ attitude from the autopilot. Pure math: no I/O.
 
 from __future__ import annotations
 
-from bisect import bisect_left
 from collections import deque
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 
+from companion.estimators.history import SampleHistory
 from companion.geometry import rot_from_rpy
 from companion.georef.georef import GeoFix, GeoReferencer
 from companion.types import (
@@ -48,31 +47,6 @@ class GeorefEstimatorOptions:
 
 
 @dataclass
-class _History:
-    """Recent timestamped samples for lookup at a frame's capture time."""
-
-    maxlen: int = 400
-    stamps: deque = field(default_factory=deque)
-    values: deque = field(default_factory=deque)
-
-    def add(self, stamp_us: int, value: object) -> None:
-        if self.stamps and stamp_us < self.stamps[-1]:
-            return  # out of order: keep the history monotonic
-        self.stamps.append(stamp_us)
-        self.values.append(value)
-        while len(self.stamps) > self.maxlen:
-            self.stamps.popleft()
-            self.values.popleft()
-
-    def nearest(self, stamp_us: int, max_gap_us: int) -> Any:
-        if not self.stamps:
-            return None
-        stamps = list(self.stamps)
-        i = bisect_left(stamps, stamp_us)
-        best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp_us))
-        return self.values[best] if abs(stamps[best] - stamp_us) <= max_gap_us else None
-
-
 class GeorefEstimator:
     """Implements ``companion.types.Estimator`` for a single nadir camera."""
 
@@ -97,8 +71,8 @@ class GeorefEstimator:
         self._last_fix_us: int | None = None
         self._gated_offsets: deque[np.ndarray] = deque(maxlen=2 * options.reinit_after_rejections)
         self.reset_counter = 0
-        self._attitude = _History()
-        self._range = _History()
+        self._attitude = SampleHistory()
+        self._range = SampleHistory()
         self.counters = {"fixes": 0, "no_fix": 0, "gated": 0, "reinit": 0}
         self.no_fix_reasons: dict[str, int] = {}
 

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import trim_mean
 
+from companion.estimators.history import SampleHistory
 from companion.geometry import CameraIntrinsics, rot_from_rpy, rpy_from_rot
 from companion.georef.dem import Dem
 from companion.georef.georef import GeoReferencer, GeorefOptions
@@ -115,27 +116,6 @@ def _worker_main(conn: Any, options: BackendOptions, geo_args: tuple | None) -> 
             conn.send(f"{type(e).__name__}: {e}")
 
 
-class _History:
-    """Recent (stamp_us, value) samples, nearest lookup."""
-
-    def __init__(self, maxlen: int = 400) -> None:
-        self.stamps: deque[int] = deque(maxlen=maxlen)
-        self.values: deque[Any] = deque(maxlen=maxlen)
-
-    def add(self, stamp_us: int, value: Any) -> None:
-        if self.stamps and stamp_us < self.stamps[-1]:
-            return  # out of order: keep the history monotonic
-        self.stamps.append(stamp_us)
-        self.values.append(value)
-
-    def nearest(self, stamp_us: int, max_gap_us: int) -> Any | None:
-        if not self.stamps:
-            return None
-        s = np.fromiter(self.stamps, np.int64, len(self.stamps))
-        i = int(np.argmin(np.abs(s - stamp_us)))
-        return self.values[i] if abs(int(s[i]) - stamp_us) <= max_gap_us else None
-
-
 class TerrainLbaEstimator:
     """Implements ``companion.types.Estimator`` for one nadir camera."""
 
@@ -184,8 +164,8 @@ class TerrainLbaEstimator:
             if not self._conn.poll(self.opt.backend_start_timeout_s) or self._conn.recv() != "ready":
                 self.close()
                 raise RuntimeError("terrain_lba back-end worker did not start")
-        self._attitude = _History()
-        self._range = _History()
+        self._attitude = SampleHistory()
+        self._range = SampleHistory()
         # altimeter samples not yet turned into altitude offsets, and the offsets since the last key frame
         self._alt_pending: deque[tuple[int, float]] = deque(maxlen=200)
         self._alt_offsets: list[float] = []
