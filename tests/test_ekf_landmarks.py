@@ -162,5 +162,7 @@ def test_so3_helpers_round_trip():
         w = rng.normal(size=3)
         R = rot_exp(w)
         np.testing.assert_allclose(rot_from_quat(quat_exp(w)), R, atol=1e-12)
-        np.testing.assert_allclose(rot_log(R), w if np.linalg.norm(w) < np.pi else rot_log(R), atol=1e-9)
+        if np.linalg.norm(w) < np.pi:
+            np.testing.assert_allclose(rot_log(R), w, atol=1e-9)
+        np.testing.assert_allclose(rot_exp(rot_log(R)), R, atol=1e-9)  # any angle, wrapped or not
         np.testing.assert_allclose(rot_from_quat(quat_from_rot(R)), R, atol=1e-12)

@@ -417,7 +417,3 @@ class VisThermalSlam:
             position_sigma_max_m=ekf.position_sigma_max_m(),
             frames_since_match=self._frames_since_match,
         )
-
-    @property
-    def state_dim(self) -> int:
-        return VEHICLE_DIM if self.ekf is None else self.ekf.P.shape[0]

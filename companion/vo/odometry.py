@@ -275,16 +275,6 @@ class VisualOdometry:
                     self.lm_born_kf.pop(int(t), None)
         return C
 
-    def transform_map(self, T: np.ndarray) -> None:
-        """Move the whole map and the current pose by the rigid transform ``T`` (world <- old world)."""
-        R, t = T[:3, :3], T[:3, 3]
-        for kf in self.kfs.values():
-            kf.T_world_cam = T @ kf.T_world_cam
-        for k in self.lm:
-            self.lm[k] = R @ self.lm[k] + t
-        if self.T is not None:
-            self.T = T @ self.T
-
     # ------------------------------------------------------------------------------------------------
     # initialisation
 
