@@ -72,7 +72,12 @@ def sim_and_gcs():
     )
     sim.start()
     gcs = Gcs(port)
-    gcs.send(gcs.mav.heartbeat_encode(18, 8, 0, 0, 4))
+    # like a real GCS, repeat the heartbeat until the autopilot answers: the first datagram may arrive
+    # before the simulated autopilot's socket is bound (seen on a loaded machine: then nothing ever comes)
+    for _ in range(20):
+        gcs.send(gcs.mav.heartbeat_encode(18, 8, 0, 0, 4))
+        if wait_for(lambda: gcs.msgs, 0.5):
+            break
     yield sim, gcs
     gcs.close()
     sim.stop()
