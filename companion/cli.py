@@ -2,10 +2,14 @@
 
     companion run --config configs/sim_mars.toml [--set key=value ...]
     companion check-config configs/sim_mars.toml
+    companion check-autopilot --config configs/vehicle_serial_geotiff.toml [--timeout 15]
 
 ``--set`` overrides one key of the file (dotted path, TOML/JSON value), e.g.
 ``--set mavlink.connection='"serial:/dev/ttyAMA0:921600"'`` or ``--set estimator.kind='"georef"'``.
 Exit codes: 0 clean stop, 2 configuration error, 1 failure at start-up.
+check-autopilot connects as the daemon would, reads the autopilot's external-vision parameters and prints
+what each means for us (``companion.io.autopilot_params``); exit 0 when nothing stops the autopilot from
+using the estimates (warnings included), 1 on an error or no autopilot heard, 2 configuration error.
 """
 
 from __future__ import annotations
@@ -76,6 +80,44 @@ def cmd_check(path: str, sets: list[str]) -> int:
     return 0
 
 
+def estimator_cameras(cfg: CompanionConfig) -> tuple[str, ...]:
+    """Names of the configured cameras the estimator uses (first: the one the autopilot's offset is for)."""
+    if cfg.estimator.kind != "vis_thermal_ekf":
+        return ("nadir",)
+    return {"visible": ("visible",), "thermal": ("thermal",), "dual": ("visible", "thermal")}[
+        cfg.estimator.ekf.mode
+    ]
+
+
+def cmd_check_autopilot(cfg: CompanionConfig, timeout_s: float) -> int:
+    """Read the autopilot's parameters over the configured link and print the findings."""
+    import time
+
+    from companion.io.autopilot import AutopilotLinkAdapter
+    from companion.io.autopilot_params import ERROR
+
+    offset = cfg.cameras[estimator_cameras(cfg)[0]].position_in_body_m
+    link = AutopilotLinkAdapter(cfg.mavlink, cfg.origin, camera_offset_m=offset)
+    link.link.start()
+    try:
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end and link.check_autopilot() is None:
+            time.sleep(0.05)
+        findings = link.check_autopilot()
+        hb = link.link.autopilot_heartbeat
+    finally:
+        link.stop()
+    if findings is None:
+        what = "no HEARTBEAT" if hb is None else f"HEARTBEAT from autopilot type {int(hb.autopilot)}"
+        print(f"{cfg.mavlink.connection}: {what} within {timeout_s:g} s; only ArduPilot and PX4 are checked")
+        return 1
+    print(f"{cfg.mavlink.connection}: {link.link.flavour}, {len(link.link.params)} parameters read")
+    width = max(len(f.param) for f in findings)
+    for f in findings:
+        print(f"  {f.severity.upper():7s} {f.param:{width}s} = {f.value:10s} {f.message}")
+    return 1 if any(f.severity == ERROR for f in findings) else 0
+
+
 def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     """Run the daemon until SIGINT/SIGTERM (or ``stop`` is set). Returns the exit code."""
     from companion.daemon import Daemon
@@ -89,7 +131,8 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     estimator = build_estimator(cfg)
     tol_us = int(cfg.estimator.ekf.pair_tolerance_ms * 1000)
     handoff = FrameHandoff(tuple(estimator.cameras), pair_tolerance_us=tol_us)
-    link = AutopilotLinkAdapter(cfg.mavlink, cfg.origin)
+    offset = cfg.cameras[estimator_cameras(cfg)[0]].position_in_body_m
+    link = AutopilotLinkAdapter(cfg.mavlink, cfg.origin, camera_offset_m=offset)
     z = cfg.zenoh
     session = open_session(z.mode, z.connect, z.listen, z.multicast_scouting)
     status_pub = StatusPublisher(session, z.status_key)
@@ -157,6 +200,12 @@ def main(argv: list[str] | None = None) -> int:
     pc = sub.add_parser("check-config", help="validate a configuration file and print a summary")
     pc.add_argument("config")
     pc.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    pa = sub.add_parser(
+        "check-autopilot", help="read the autopilot's external-vision parameters and check them"
+    )
+    pa.add_argument("--config", required=True, help="TOML configuration file (its [mavlink] link is used)")
+    pa.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one key")
+    pa.add_argument("--timeout", type=float, default=15.0, help="seconds to wait for the autopilot (15)")
     a = ap.parse_args(argv)
     try:
         if a.cmd == "check-config":
@@ -165,6 +214,13 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"companion: {e}", file=sys.stderr)
         return 2
+    if a.cmd == "check-autopilot":
+        _setup_logging("WARNING")
+        try:
+            return cmd_check_autopilot(cfg, a.timeout)
+        except (ValueError, OSError) as e:
+            print(f"companion: cannot open {cfg.mavlink.connection}: {e}", file=sys.stderr)
+            return 1
     _setup_logging(cfg.daemon.log_level)
     try:
         return cmd_run(cfg)

@@ -54,6 +54,8 @@ class CameraConfig(_Strict):
     sensor_mm: Annotated[float, Field(gt=0)] = 36.0
     mount: Literal["nadir"] = "nadir"
     extra_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # where the camera sits, body FRD metres. The estimates are this camera's position; the autopilot moves
+    # them to its body origin with VISO_POS_* / EKF2_EV_POS_*, which must say the same (the daemon checks)
     position_in_body_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def intrinsics(self) -> CameraIntrinsics:

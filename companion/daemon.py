@@ -39,6 +39,13 @@ Sample = AttitudeSample | ImuSample | AltimeterSample | LocalPositionSample
 log = logging.getLogger("companion")
 
 
+def _params_note(check: dict[str, Any] | None) -> str:
+    """Status-line suffix when the autopilot's parameter check found problems (details in the log)."""
+    if not check or not check.get("problems"):
+        return ""
+    return f"  AUTOPILOT PARAMS {check['worst'].upper()}: {', '.join(sorted(check['problems']))}"
+
+
 def now_us() -> int:
     """The companion clock: Unix time in microseconds, the clock ROS 2 header stamps use."""
     return time.time_ns() // 1000
@@ -271,6 +278,7 @@ class Daemon:
             f"drop {st['frames_dropped_stale']}  bad {bad_s}  unsent {not_sent}  q {st['quality']:.2f}  "
             f"est {st['estimate_status']}  link {link.get('state', '?')}"
             f"{'' if link.get('timesync', True) else ' (no timesync)'}"
+            f"{_params_note(link.get('params_check'))}"
         )
 
     def _status_loop(self) -> None:

@@ -15,6 +15,10 @@ ArduPilot behaviour reproduced (checked against GCS_Common.cpp / AP_NavEKF3 as d
 - EKF3 drops external-nav samples closer than its minimum interval (20 ms, i.e. above ~50 Hz).
 - Samples must be finite; their time (autopilot clock) must increase, not lie in the future, and
   not be older than the EKF's fusion horizon (~500 ms).
+- Parameters: PARAM_REQUEST_READ by name (or index) is answered with PARAM_VALUE (every type sent as a
+  float, as ArduPilot does); an unknown name gets no answer. VISO_TYPE 0 drops every external-nav
+  sample (counted as "viso_disabled"); EK3_SRC1_POSXY other than 6 (ExternalNav) accepts them but does
+  not use them for position, which the simulation does not model beyond reporting the value.
 """
 
 from __future__ import annotations
@@ -47,6 +51,24 @@ REJECT_FUTURE: Final = "future"
 REJECT_TOO_OLD: Final = "too_old"
 REJECT_NOT_MONOTONIC: Final = "not_monotonic"
 REJECT_TOO_FAST: Final = "too_fast"
+REJECT_VISO_DISABLED: Final = "viso_disabled"
+
+DEFAULT_PARAMS: Final[dict[str, tuple[float, int]]] = {
+    # name: (value, MAV_PARAM_TYPE) -- a copter set up for external navigation as deploy/ardupilot.parm
+    "AHRS_EKF_TYPE": (3.0, mavlink2.MAV_PARAM_TYPE_INT8),
+    "VISO_TYPE": (1.0, mavlink2.MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_POSXY": (6.0, mavlink2.MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_VELXY": (0.0, mavlink2.MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_POSZ": (1.0, mavlink2.MAV_PARAM_TYPE_INT8),
+    "EK3_SRC1_YAW": (1.0, mavlink2.MAV_PARAM_TYPE_INT8),
+    "EK3_SRC2_POSXY": (0.0, mavlink2.MAV_PARAM_TYPE_INT8),
+    "EK3_SRC3_POSXY": (0.0, mavlink2.MAV_PARAM_TYPE_INT8),
+    "VISO_POS_X": (0.0, mavlink2.MAV_PARAM_TYPE_REAL32),
+    "VISO_POS_Y": (0.0, mavlink2.MAV_PARAM_TYPE_REAL32),
+    "VISO_POS_Z": (0.0, mavlink2.MAV_PARAM_TYPE_REAL32),
+    "VISO_DELAY_MS": (50.0, mavlink2.MAV_PARAM_TYPE_INT16),
+}
+"""The simulated autopilot's parameters (``SimAutopilotOptions.params`` overrides values by name)."""
 
 
 def hover_truth(alt_agl_m: float = 30.0, yaw_rad: float = 0.0) -> TruthFn:
@@ -114,6 +136,8 @@ class SimAutopilotOptions:
     ext_nav_max_age_us: int = 500_000
     ext_nav_max_future_us: int = 20_000
     noise: SimNoise = field(default_factory=SimNoise)
+    params: tuple[tuple[str, float], ...] = ()
+    """(name, value) overriding ``DEFAULT_PARAMS`` (a new name is added as a float parameter)."""
     signing_key: bytes | None = None
     accept_unsigned: bool = False
     baudrate: int = 921_600
@@ -180,6 +204,10 @@ class SimAutopilotLink:
         self.thread_errors = 0
         self._last_ext_usec: int | None = None
         self._next_due: dict[str, float] = {}
+        self.params: dict[str, tuple[float, int]] = dict(DEFAULT_PARAMS)
+        for name, value in opts.params:
+            kind = self.params.get(name, (0.0, mavlink2.MAV_PARAM_TYPE_REAL32))[1]
+            self.params[name] = (float(value), kind)
         self._draw_biases()
 
     # --- clocks ---------------------------------------------------------------------------------
@@ -447,6 +475,20 @@ class SimAutopilotLink:
             if msg.target_system in (0, self.sysid):
                 self.origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
                 self._send_origin()
+        elif name == "PARAM_REQUEST_READ":
+            if msg.target_system not in (0, self.sysid):
+                return
+            names = list(self.params)
+            pid = str(msg.param_id)
+            if int(msg.param_index) >= 0:
+                pid = names[int(msg.param_index)] if int(msg.param_index) < len(names) else ""
+            if pid in self.params:
+                value, kind = self.params[pid]
+                self._send(
+                    self.codec.mav.param_value_encode(
+                        pid.encode("ascii"), value, kind, len(names), names.index(pid)
+                    )
+                )
         elif name == "VISION_POSITION_ESTIMATE":
             p = np.array([msg.x, msg.y, msg.z], dtype=float)
             rpy = np.array([msg.roll, msg.pitch, msg.yaw], dtype=float)
@@ -487,6 +529,9 @@ class SimAutopilotLink:
     ) -> None:
         """ArduPilot-like acceptance of one external-nav sample."""
         opts = self.options
+        if int(self.params.get("VISO_TYPE", (1.0, 0))[0]) == 0:
+            self._reject(REJECT_VISO_DISABLED)
+            return
         cov_ok = math.isnan(cov[0]) or all(math.isfinite(c) for c in cov)  # NaN first = "unknown"
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(rpy)) and cov_ok):
             self._reject(REJECT_NON_FINITE)

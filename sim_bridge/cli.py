@@ -93,6 +93,17 @@ def sim_config_from_args(a: argparse.Namespace, **kw) -> SimConfig:
     )
 
 
+def _param(text: str) -> tuple[str, float]:
+    """NAME=VALUE of ``--param``."""
+    name, sep, value = text.partition("=")
+    try:
+        if not sep or not name.strip():
+            raise ValueError
+        return name.strip().upper(), float(value)
+    except ValueError:
+        raise SystemExit(f"sim_bridge: --param wants NAME=VALUE (e.g. VISO_TYPE=0), got {text!r}") from None
+
+
 def cmd_sim(a: argparse.Namespace) -> int:
     """Run the simulated vehicle; progress as JSON lines on stdout (the demo reads them)."""
     from sim_bridge.sim import SimVehicle, save_result
@@ -108,6 +119,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
         drop_every=a.drop_every,
         start_delay_s=a.start_delay or 0.0,
         wait_companion_s=a.wait_companion,
+        autopilot_params=tuple(_param(x) for x in a.param),
     )
 
     def progress(rep: dict) -> None:
@@ -142,6 +154,13 @@ def main(argv: list[str] | None = None) -> int:
     ps.add_argument("--visible-key", default=SimConfig().visible_key, help="europa: the visible camera's key")
     ps.add_argument("--thermal-key", default=SimConfig().thermal_key, help="europa: the thermal camera's key")
     ps.add_argument("--drop-every", type=int, default=0, help="skip publishing every n-th frame")
+    ps.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="set a simulated autopilot parameter (e.g. VISO_TYPE=0 to see a misconfigured vehicle)",
+    )
     ps.add_argument("--out", default="runs/sim", help="directory for truth.tum, estimate.tum, summary")
     pd = sub.add_parser("demo", help="fly the companion against the simulator on loopback (README main job)")
     _add_sim_args(pd)

@@ -60,6 +60,7 @@ class SimConfig:
     drop_every: int = 0  # publish only; skip every n-th frame (tests of dropped frames); 0 = none
     start_delay_s: float = 0.0  # autopilot up, camera silent: time for a companion to connect and sync
     wait_companion_s: float = 0.0  # before that, wait (at most this long) for a companion's HEARTBEAT
+    autopilot_params: tuple[tuple[str, float], ...] = ()  # simulated autopilot parameters set by name
 
 
 WORLDS = ("mars", "europa")
@@ -157,6 +158,7 @@ class SimVehicle:
                 origin=cfg.origin_lat_lon_alt,
                 range_max_m=250.0,
                 noise=europa_telemetry_noise(),
+                params=cfg.autopilot_params,
             )
         elif cfg.world == "mars":
             from sim_bridge.render import VisibleRenderer
@@ -169,7 +171,10 @@ class SimVehicle:
             self.renderer = VisibleRenderer(self.scene.dem, self.scene.albedo, self.scene.sun, self.intr)
             self.camera_keys = (cfg.camera_key,)
             opts = SimAutopilotOptions(
-                planet="mars", origin=cfg.origin_lat_lon_alt, range_max_m=max(150.0, 2 * cfg.height_agl_m)
+                planet="mars",
+                origin=cfg.origin_lat_lon_alt,
+                range_max_m=max(150.0, 2 * cfg.height_agl_m),
+                params=cfg.autopilot_params,
             )
         else:
             raise ValueError(f"unknown world {cfg.world!r} ({', '.join(WORLDS)})")

@@ -1,7 +1,8 @@
 """The daemon's view of the autopilot: a ``MavlinkLink`` configured from the TOML config, plus what
 the daemon adds on top — the message choice (VISION_POSITION_ESTIMATE or ODOMETRY), the reset counter
-bumped when the autopilot reboots (its EKF restarted, so our estimate jumps for it), and setting the
-EKF origin when the config gives one and the autopilot has none.
+bumped when the autopilot reboots (its EKF restarted, so our estimate jumps for it), setting the
+EKF origin when the config gives one and the autopilot has none, and the check of the autopilot's
+external-vision parameters (``companion.io.autopilot_params``), logged once they are read.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Any
 
 from companion.config import MavlinkConfig, OriginConfig
 from companion.geometry import rot_from_rpy
+from companion.io.autopilot_params import ERROR, WARNING, Finding, check_params, worst
 from companion.io.mavlink import LinkCallbacks, LocalPositionNed, MavlinkLink, MavlinkOptions
 from companion.types import LocalPositionSample, PoseEstimate
 
@@ -36,10 +38,19 @@ class AutopilotLinkAdapter:
     """Implements ``companion.daemon.AutopilotLink`` over a ``MavlinkLink``."""
 
     def __init__(
-        self, cfg: MavlinkConfig, origin: OriginConfig | None = None, link: MavlinkLink | None = None
+        self,
+        cfg: MavlinkConfig,
+        origin: OriginConfig | None = None,
+        link: MavlinkLink | None = None,
+        camera_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ):
+        """camera_offset_m: the camera's position in the body frame (FRD, m) as configured, compared with
+        the autopilot's VISO_POS_* / EKF2_EV_POS_*."""
         self.cfg = cfg
         self.origin = origin
+        self.camera_offset_m = camera_offset_m
+        self.findings: list[Finding] | None = None
+        """The parameter check, once the parameters are read (again after an autopilot reboot)."""
         self._callbacks = LinkCallbacks(on_autopilot_reset=self._on_reset)
         self.link = link or MavlinkLink(link_options(cfg), self._callbacks)
         if link is not None:
@@ -50,6 +61,7 @@ class AutopilotLinkAdapter:
 
     def _on_reset(self, reason: str) -> None:
         self.reset_offset += 1
+        self.findings = None  # parameters are read again after a reboot
         log.warning("autopilot reset detected (%s): reset_counter offset now %d", reason, self.reset_offset)
 
     def start(
@@ -102,8 +114,38 @@ class AutopilotLinkAdapter:
             return self.link.last_refusal or "link_down"
         return self.link.send_estimate(estimate)
 
+    def check_autopilot(self) -> list[Finding] | None:
+        """The parameter findings once every parameter has answered or timed out (logged the first time);
+        None while reading, or when the autopilot is neither ArduPilot nor PX4."""
+        link = self.link
+        if self.findings is None and link.flavour is not None and link.params_complete:
+            self.findings = check_params(
+                link.flavour, dict(link.params), self.camera_offset_m, self.cfg.message
+            )
+            bad = [f for f in self.findings if f.severity in (WARNING, ERROR)]
+            for f in bad:
+                log.warning("autopilot %s %s = %s: %s", f.severity, f.param, f.value, f.message)
+            if not bad:
+                log.info(
+                    "autopilot (%s) parameters: external vision set up (%d checked)",
+                    link.flavour,
+                    len(self.findings),
+                )
+        return self.findings
+
     def status(self) -> dict[str, Any]:
+        findings = self.check_autopilot()
         st = self.link.status()
+        st["params_check"] = (
+            None
+            if findings is None
+            else {
+                "worst": worst(findings),
+                "problems": {
+                    f.param: f"{f.severity}: {f.value}" for f in findings if f.severity in (WARNING, ERROR)
+                },
+            }
+        )
         st["timesync"] = bool(st["timesync"]["synced"])
         st["reset_offset"] = self.reset_offset
         st["origin_set"] = self.link.origin is not None

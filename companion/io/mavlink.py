@@ -25,6 +25,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from scipy.spatial.transform import Rotation
 
 from companion.constants import DEFAULT_COMPANION_SYSID, GRAVITY_MPS2, MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+from companion.io.autopilot_params import decode_param_value, flavour_from_heartbeat, params_to_read
 from companion.io.timesync import TimeSync, TimeSyncOptions
 from companion.io.transport import Backoff, Transport, open_transport
 from companion.types import AltimeterSample, AttitudeSample, EstimateStatus, ImuSample, PoseEstimate
@@ -238,6 +239,13 @@ class MavlinkOptions:
     backoff: Backoff = field(default_factory=Backoff)
     read_timeout_s: float = 0.01
     """I/O thread poll period (bounds timer jitter of heartbeat / timesync sends)."""
+    read_params: bool = True
+    """Read the autopilot's external-vision parameters (``companion.io.autopilot_params``) once its
+    HEARTBEAT says whether it is ArduPilot or PX4, and again after a reboot."""
+    param_retry_s: float = 1.0
+    """Unanswered PARAM_REQUEST_READs are repeated after this long ..."""
+    param_attempts: int = 3
+    """... this many times in all; a parameter still unanswered is reported as such."""
 
 
 @dataclass
@@ -281,7 +289,14 @@ class MavlinkLink:
         self._last_boot_ms: int | None = None
         self._last_vision_usec: int | None = None
         self._reset_flag = False
+        self._param_names: tuple[str, ...] = ()
+        self._param_tries = 0
+        self._next_param_mono = 0.0
         # latest values
+        self.flavour: str | None = None
+        """"ardupilot" / "px4" from the autopilot's HEARTBEAT, None before it (or for another autopilot)."""
+        self.params: dict[str, float] = {}
+        """Autopilot parameters read so far (name -> value), see ``MavlinkOptions.read_params``."""
         self.autopilot_heartbeat: Any = None
         """Last HEARTBEAT message from the autopilot (pymavlink object), None before the first."""
         self.origin: GeoOrigin | None = None
@@ -344,6 +359,19 @@ class MavlinkLink:
             return LinkState.DOWN
         return LinkState.STALE if age > self.options.stale_after_s else LinkState.UP
 
+    @property
+    def params_complete(self) -> bool:
+        """True once every parameter asked for has answered or its last attempt has timed out."""
+        if not self._param_names:
+            return False
+        if all(n in self.params for n in self._param_names):
+            return True
+        return self._param_tries >= self.options.param_attempts and time.monotonic() >= self._next_param_mono
+
+    def params_asked(self) -> tuple[str, ...]:
+        """Names of the parameters being read (empty before the autopilot is identified)."""
+        return self._param_names
+
     def consume_reset(self) -> bool:
         """True once after an autopilot reboot / reconnect was detected (the daemon may re-init)."""
         with self._lock:
@@ -382,6 +410,8 @@ class MavlinkLink:
             "signing": self.codec.signing_counters if self.options.signing_key else None,
             "callback_errors": self.callback_errors,
             "thread_errors": self.thread_errors,
+            "autopilot": self.flavour,
+            "params_read": f"{sum(n in self.params for n in self._param_names)}/{len(self._param_names)}",
         }
 
     # --- sending --------------------------------------------------------------------------------
@@ -585,6 +615,22 @@ class MavlinkLink:
             self._next_timesync = mono + self.options.timesync_period_s
             tc1, ts1 = self.timesync.make_request(self.clock_us())
             self.send_message(self.codec.mav.timesync_encode(tc1, ts1))
+        if (
+            self._param_names
+            and self._param_tries < self.options.param_attempts
+            and mono >= self._next_param_mono
+        ):
+            missing = [n for n in self._param_names if n not in self.params]
+            if missing:
+                self._param_tries += 1
+                self._next_param_mono = mono + self.options.param_retry_s
+                o = self.options
+                for name in missing:
+                    self.send_message(
+                        self.codec.mav.param_request_read_encode(
+                            o.autopilot_sysid, o.autopilot_compid, name.encode("ascii"), -1
+                        )
+                    )
 
     def _stamp(self, boot_us: int, arrival_us: int) -> int:
         """Companion-clock stamp of an autopilot sample: its own stamp mapped by TIMESYNC, else arrival."""
@@ -606,6 +652,10 @@ class MavlinkLink:
             self.timesync.reset()
         self._last_boot_ms = None
         self._last_vision_usec = None
+        # parameters may have changed across the reboot: read them again
+        self.params = {}
+        self._param_tries = 0
+        self._next_param_mono = 0.0
         mono = time.monotonic()
         same = (
             self._last_reboot_mono is not None
@@ -644,6 +694,18 @@ class MavlinkLink:
                 self._autopilot_reset("heartbeat_gap")
             self._last_hb_mono = mono
             self.autopilot_heartbeat = msg
+            if self.flavour is None:
+                self.flavour = flavour_from_heartbeat(int(msg.autopilot))
+                if self.flavour is not None and self.options.read_params:
+                    self._param_names = params_to_read(self.flavour)
+        elif name == "PARAM_VALUE":
+            if self.flavour is not None:
+                pid = str(msg.param_id)
+                if pid not in self._param_names:
+                    return  # a GCS downloading the whole list: not ours to keep
+                self.params[pid] = decode_param_value(
+                    float(msg.param_value), int(msg.param_type), self.flavour
+                )
         elif name == "SYSTEM_TIME":
             boot_ms = int(msg.time_boot_ms)
             last = self._last_boot_ms
