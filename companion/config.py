@@ -78,6 +78,9 @@ class MavlinkConfig(_Strict):
     signing_key_hex: str = ""
     set_origin_if_missing: bool = True
     link_timeout_s: Annotated[float, Field(gt=0)] = 3.0
+    # estimates of frames captured longer ago than this are not sent, counted as "too_old" (ArduPilot's EKF3
+    # discards external-nav samples 500 ms behind its fusion time); 0 = send whatever the age
+    max_estimate_age_ms: Annotated[float, Field(ge=0)] = 500.0
 
     @field_validator("connection")
     @classmethod

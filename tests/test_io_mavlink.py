@@ -21,6 +21,7 @@ from companion.io.mavlink import (
     REFUSE_NON_FINITE,
     REFUSE_NOT_MONOTONIC,
     REFUSE_NOT_OK,
+    REFUSE_TOO_OLD,
     LinkCallbacks,
     LinkState,
     MavCodec,
@@ -161,7 +162,7 @@ def test_heartbeat_and_vpe_content(peer: UdpPeer) -> None:
 
 def test_guard_never_sends_nan_inf_or_unhealthy(peer: UdpPeer) -> None:
     link = MavlinkLink(MavlinkOptions(connection=f"udpout:127.0.0.1:{peer.port}"))
-    t = 1_700_000_000_000_000
+    t = time.time_ns() // 1000 - 100_000  # captured 100 ms ago
     bad_cov = np.eye(6)
     bad_cov[2, 2] = -1.0
     cases = [
@@ -175,6 +176,7 @@ def test_guard_never_sends_nan_inf_or_unhealthy(peer: UdpPeer) -> None:
     with link:
         for est, reason in cases:
             assert link.send_estimate(est, usec_autopilot=5_000_000) == reason
+        assert link.send_estimate(estimate(t - 600_000)) == REFUSE_TOO_OLD  # 0.7 s: ArduPilot would drop it
         assert link.send_estimate(estimate(t)) == REFUSE_NO_TIMESYNC  # no autopilot, no clock mapping
         assert link.send_estimate(estimate(t), usec_autopilot=5_000_000) is None
         assert link.send_estimate(estimate(t), usec_autopilot=5_000_000) == REFUSE_NOT_MONOTONIC

@@ -48,6 +48,9 @@ REFUSE_NOT_MONOTONIC: Final = "not_monotonic"
 """Autopilot timestamp not after the previous one sent."""
 REFUSE_RATE: Final = "rate"
 """Closer to the previous estimate than the configured maximum rate allows."""
+REFUSE_TOO_OLD: Final = "too_old"
+"""Captured longer ago than ``max_estimate_age_s``: the autopilot would discard it (ArduPilot's EKF3 drops
+external-nav samples more than 500 ms behind its fusion time), so it is counted here instead."""
 REFUSE_LINK_DOWN: Final = "link_down"
 """The transport could not write (disconnected, or no UDP peer yet)."""
 
@@ -228,6 +231,9 @@ class MavlinkOptions:
     reboot_coalesce_s: float = 5.0
     """Reboot signs closer than this to the previous one (a restarted boot clock shows in SYSTEM_TIME,
     TIMESYNC and the heartbeat gap, one after the other) are the same reboot: reset_counter moves once."""
+    max_estimate_age_s: float = 0.5
+    """Estimates whose frame was captured longer ago than this (our clock) are not sent (``REFUSE_TOO_OLD``);
+    0 = off. Not applied when the caller gives the autopilot timestamp itself."""
     max_vision_rate_hz: float = 40.0
     """Cap on estimates sent (ArduPilot EKF3 drops external-nav samples closer than 20 ms; 40 Hz = 25 ms)."""
     signing_key: bytes | None = None
@@ -460,6 +466,16 @@ class MavlinkLink:
             return None
         if cov.shape != (6, 6) or bool(np.any(np.diag(cov) < 0.0)):
             self._refuse(REFUSE_BAD_COVARIANCE)
+            return None
+        max_age = self.options.max_estimate_age_s
+        # the age is measured in our clock, so only for stamps we map ourselves (a caller giving the
+        # autopilot time has its own timing, e.g. a replay)
+        if (
+            usec_autopilot is None
+            and max_age > 0
+            and estimate.stamp_us < self.clock_us() - int(max_age * 1e6)
+        ):
+            self._refuse(REFUSE_TOO_OLD)
             return None
         usec = (
             usec_autopilot if usec_autopilot is not None else self.timesync.to_autopilot_us(estimate.stamp_us)
