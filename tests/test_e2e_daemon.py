@@ -282,6 +282,9 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
         assert word in reasons, f"{word!r} not among the counted reasons: {st['frames']['decode_errors']}"
     assert sum(st["frames"]["decode_errors"].values()) >= 6
     assert st["estimator_errors"] == 0
+    # the daemon read the simulated ArduPilot's external-vision parameters and found it set up for us
+    assert st["link"]["autopilot"] == "ardupilot" and st["link"]["params_check"] is not None, st["link"]
+    assert st["link"]["params_check"]["problems"] == {}, st["link"]["params_check"]
     if case.estimator == "terrain_lba":
         # key frames went through the back-end: geo-fixes against the DEM, the adjustment, results applied
         c = st["estimator"]["counters"]
