@@ -14,6 +14,9 @@ with uniform sampling (same trial, same seeds: paired samples). The filter start
 perturbed by a draw from its own prior (``BENCH_OPTIONS``: 5 cm, 5 cm/s, 0.2 deg; the same draw for every
 configuration of a trial); every other estimator setting is the daemon's default, identical for all modes.
 
+NEES (per run): mean over frames of e^T P^-1 e, e the position error and P the position block of the
+covariance the estimator reports (what the autopilot receives); 3 for a consistent filter, more when the
+filter claims more certainty than it has.
 E (per run): slope (%) of the position-error norm against the distance travelled, by ordinary least
 squares with intercept (``scipy.stats.linregress``) over the frame times, as paper 2 section 5.
 I (eq. 10) per trajectory from the trial-mean E: I_a_vs_b = (E_a - E_b) / E_a * 100.
@@ -177,8 +180,12 @@ def run_trial(name: str, trial: int, seed: int, detect_scale: float | None = Non
         res = run_sequence(est, imu_list, alt_list, frames)
         est.close()
         idx = np.searchsorted(np.array([f[0] for f in frames]), res.stamp_us)
-        err = np.linalg.norm(res.p_world - truth[idx], axis=1)
+        e_vec = res.p_world - truth[idx]
+        err = np.linalg.norm(e_vec, axis=1)
+        # consistency of the covariance the autopilot gets: position NEES e^T P^-1 e (expected 3 on average)
+        nees = np.einsum("ni,nij,nj->n", e_vec, np.linalg.inv(res.covariance[:, :3, :3]), e_vec)
         out[cfg] = {
+            "nees_position": float(np.mean(nees)) if len(nees) else float("nan"),
             "E_percent": slope_percent(dist[idx], err),
             "final_error_m": float(err[-1]) if len(err) else float("nan"),
             "filter_s_per_frame": res.seconds / max(len(frames), 1),
@@ -209,6 +216,8 @@ def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]
         row: dict[str, Any] = {"trials": len(rs), "distance_m": float(np.mean([r["distance_m"] for r in rs]))}
         for c in ("visible", "thermal", "dual"):
             row[c] = {
+                # runs logged before the NEES was computed have none (NaN)
+                "nees_position": float(np.nanmean([r[c].get("nees_position", np.nan) for r in rs])),
                 "E_percent": float(np.nanmean(E[c])),
                 "E_std": float(np.nanstd(E[c], ddof=1)) if len(rs) > 1 else float("nan"),
                 "final_error_m": float(np.mean([r[c]["final_error_m"] for r in rs])),
@@ -233,6 +242,9 @@ def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]
     keys = list(per)
     avg: dict[str, Any] = {
         c: float(np.mean([per[k][c]["E_percent"] for k in keys])) for c in ("visible", "thermal", "dual")
+    }
+    avg["nees_position"] = {
+        c: float(np.mean([per[k][c]["nees_position"] for k in keys])) for c in ("visible", "thermal", "dual")
     }
     for a, b, ca, cb in PAIRS:
         avg[f"I_{a}_vs_{b}"] = float(np.mean([per[k][f"I_{a}_vs_{b}"] for k in keys]))
@@ -391,6 +403,11 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(table(["traj", "E kde %", "E uniform %", "I uniform->kde %", "d"], rows3,
                 "Dual mode: diversity (KDE, eq. 8) vs uniform landmark sampling, same trials"))  # fmt: skip
+    rows4 = [[k] + [per[k][c]["nees_position"] for c in ("visible", "thermal", "dual")] for k in per]
+    rows4.append(["avg"] + [avg["nees_position"][c] for c in ("visible", "thermal", "dual")])
+    print()
+    print(table(["traj", "NEES vis", "NEES tir", "NEES dual"], rows4,
+                "Consistency: mean position NEES of the covariance sent to the autopilot (3 = consistent)"))  # fmt: skip
     pair_s = np.array([r["pair_s"] for r in results])
     rate = daemon_path_rate(detect_scale=a.detect_scale)
     timing = {
