@@ -128,9 +128,10 @@ class AutopilotLinkAdapter:
                 log.warning("autopilot %s %s = %s: %s", f.severity, f.param, f.value, f.message)
             if not bad:
                 log.info(
-                    "autopilot (%s) parameters: external vision set up (%d checked)",
+                    "autopilot (%s): external vision set up (%d of %d parameters read)",
                     link.flavour,
-                    len(self.findings),
+                    len(link.params),
+                    len(link.params_asked()),
                 )
         return self.findings
 
