@@ -54,9 +54,10 @@ REJECT_TOO_FAST: Final = "too_fast"
 REJECT_VISO_DISABLED: Final = "viso_disabled"
 
 DEFAULT_PARAMS: Final[dict[str, tuple[float, int]]] = {
-    # name: (value, MAV_PARAM_TYPE) -- a copter set up for external navigation as deploy/ardupilot.parm
+    # name: (value, MAV_PARAM_TYPE) -- a copter set up for external navigation as deploy/ardupilot.parm,
+    # except the camera offset: the simulated camera sits at the body origin
     "AHRS_EKF_TYPE": (3.0, mavlink2.MAV_PARAM_TYPE_INT8),
-    "VISO_TYPE": (1.0, mavlink2.MAV_PARAM_TYPE_INT8),
+    "VISO_TYPE": (3.0, mavlink2.MAV_PARAM_TYPE_INT8),
     "EK3_SRC1_POSXY": (6.0, mavlink2.MAV_PARAM_TYPE_INT8),
     "EK3_SRC1_VELXY": (0.0, mavlink2.MAV_PARAM_TYPE_INT8),
     "EK3_SRC1_POSZ": (1.0, mavlink2.MAV_PARAM_TYPE_INT8),
@@ -66,7 +67,7 @@ DEFAULT_PARAMS: Final[dict[str, tuple[float, int]]] = {
     "VISO_POS_X": (0.0, mavlink2.MAV_PARAM_TYPE_REAL32),
     "VISO_POS_Y": (0.0, mavlink2.MAV_PARAM_TYPE_REAL32),
     "VISO_POS_Z": (0.0, mavlink2.MAV_PARAM_TYPE_REAL32),
-    "VISO_DELAY_MS": (50.0, mavlink2.MAV_PARAM_TYPE_INT16),
+    "VISO_DELAY_MS": (20.0, mavlink2.MAV_PARAM_TYPE_INT16),
 }
 """The simulated autopilot's parameters (``SimAutopilotOptions.params`` overrides values by name)."""
 

@@ -8,7 +8,8 @@ what it finds in the log and the status; ``companion check-autopilot`` prints th
 
 Values follow the parameter documentation of ArduPilot 4.5 (AP_VisualOdom, AP_NavEKF3 sources) and
 PX4 1.14+ (EKF2_EV_CTRL; the older EKF2_AID_MASK is read when EKF2_EV_CTRL is absent). Pure logic:
-values in, findings out; the reading is ``companion.io.mavlink.MavlinkLink.request_params``.
+values in, findings out; the reading is ``companion.io.mavlink.MavlinkLink`` (``MavlinkOptions.read_params``)
+and the check at start-up ``companion.io.autopilot.AutopilotLinkAdapter.check_autopilot``.
 """
 
 from __future__ import annotations
