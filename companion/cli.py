@@ -3,6 +3,7 @@
     companion run --config configs/sim_mars.toml [--set key=value ...]
     companion check-config configs/sim_mars.toml
     companion check-autopilot --config configs/vehicle_serial_geotiff.toml [--timeout 15]
+    companion watch --connect tcp/192.168.1.10:7447 [--count N] [--json]
 
 ``--set`` overrides one key of the file (dotted path, TOML/JSON value), e.g.
 ``--set mavlink.connection='"serial:/dev/ttyAMA0:921600"'`` or ``--set estimator.kind='"georef"'``.
@@ -10,6 +11,8 @@ Exit codes: 0 clean stop, 2 configuration error, 1 failure at start-up.
 check-autopilot connects as the daemon would, reads the autopilot's external-vision parameters and prints
 what each means for us (``companion.io.autopilot_params``); exit 0 when nothing stops the autopilot from
 using the estimates (warnings included), 1 on an error or no autopilot heard, 2 configuration error.
+watch prints the status line of a running daemon from anywhere its Zenoh network reaches (the JSON it
+publishes on ``companion/status``); exit 1 when none arrives within ``--timeout``.
 """
 
 from __future__ import annotations
@@ -118,6 +121,44 @@ def cmd_check_autopilot(cfg: CompanionConfig, timeout_s: float) -> int:
     return 1 if any(f.severity == ERROR for f in findings) else 0
 
 
+def cmd_watch(connect: list[str], key: str, count: int, timeout_s: float, raw: bool) -> int:
+    """Print each status message of a running daemon (its status line, or the JSON with ``raw``)."""
+    import queue
+
+    from companion.daemon import format_status_line
+    from companion.io.zenoh_io import StatusSubscriber, open_session
+
+    inbox: queue.Queue[dict[str, Any]] = queue.Queue()
+    session = open_session("peer", connect, [], multicast_scouting=not connect)
+    sub = StatusSubscriber(session, inbox.put, key)
+    shown = 0
+    try:
+        while count <= 0 or shown < count:
+            try:
+                st = inbox.get(timeout=timeout_s)
+            except queue.Empty:
+                where = ", ".join(connect) or "multicast scouting"
+                print(
+                    f"companion watch: no status on {key!r} within {timeout_s:g} s ({where})", file=sys.stderr
+                )
+                return 1 if shown == 0 else 0
+            if raw:
+                line = json.dumps(st, sort_keys=True)
+            else:
+                try:
+                    line = format_status_line(st)
+                except (KeyError, TypeError, ValueError):
+                    line = json.dumps(st, sort_keys=True)  # another version's status: show it whole
+            print(line, flush=True)
+            shown += 1
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sub.close()
+        session.close()
+    return 0
+
+
 def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     """Run the daemon until SIGINT/SIGTERM (or ``stop`` is set). Returns the exit code."""
     from companion.daemon import Daemon
@@ -206,7 +247,21 @@ def main(argv: list[str] | None = None) -> int:
     pa.add_argument("--config", required=True, help="TOML configuration file (its [mavlink] link is used)")
     pa.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one key")
     pa.add_argument("--timeout", type=float, default=15.0, help="seconds to wait for the autopilot (15)")
+    pw = sub.add_parser("watch", help="print the status line of a running daemon (its Zenoh status topic)")
+    pw.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="Zenoh endpoint of the companion, e.g. tcp/192.168.1.10:7447 (default: multicast scouting)",
+    )
+    pw.add_argument("--key", default="companion/status", help="status key (zenoh.status_key)")
+    pw.add_argument("--count", type=int, default=0, help="stop after this many messages (0: until Ctrl-C)")
+    pw.add_argument("--timeout", type=float, default=10.0, help="give up after this long without a message")
+    pw.add_argument("--json", action="store_true", help="print the whole JSON status instead of the line")
     a = ap.parse_args(argv)
+    if a.cmd == "watch":
+        return cmd_watch(a.connect, a.key, a.count, a.timeout, a.json)
     try:
         if a.cmd == "check-config":
             return cmd_check(a.config, a.set)

@@ -46,6 +46,23 @@ def _params_note(check: dict[str, Any] | None) -> str:
     return f"  AUTOPILOT PARAMS {check['worst'].upper()}: {', '.join(sorted(check['problems']))}"
 
 
+def format_status_line(st: dict[str, Any]) -> str:
+    """The one-line summary of a status dict (``Daemon.status``; what ``companion watch`` prints too)."""
+    link = st["link"]
+    reasons = st["frames"].get("decode_errors", {})
+    bad = sum(reasons.values())
+    bad_s = f"{bad}" + (f" ({', '.join(f'{k} {v}' for k, v in sorted(reasons.items()))})" if bad else "")
+    not_sent = sum(v for k, v in st["not_sent"].items() if k != "no_estimate")
+    return (
+        f"in {st['fps_in']:5.1f} fps  out {st['fps_out']:5.1f} fps  "
+        f"lat p50 {st['latency_p50_ms']:5.1f} ms p99 {st['latency_p99_ms']:5.1f} ms  "
+        f"drop {st['frames_dropped_stale']}  bad {bad_s}  unsent {not_sent}  q {st['quality']:.2f}  "
+        f"est {st['estimate_status']}  link {link.get('state', '?')}"
+        f"{'' if link.get('timesync', True) else ' (no timesync)'}"
+        f"{_params_note(link.get('params_check'))}"
+    )
+
+
 def now_us() -> int:
     """The companion clock: Unix time in microseconds, the clock ROS 2 header stamps use."""
     return time.time_ns() // 1000
@@ -266,20 +283,7 @@ class Daemon:
         }
 
     def status_line(self, st: dict[str, Any] | None = None) -> str:
-        st = self.status() if st is None else st
-        link = st["link"]
-        reasons = st["frames"].get("decode_errors", {})
-        bad = sum(reasons.values())
-        bad_s = f"{bad}" + (f" ({', '.join(f'{k} {v}' for k, v in sorted(reasons.items()))})" if bad else "")
-        not_sent = sum(v for k, v in st["not_sent"].items() if k != "no_estimate")
-        return (
-            f"in {st['fps_in']:5.1f} fps  out {st['fps_out']:5.1f} fps  "
-            f"lat p50 {st['latency_p50_ms']:5.1f} ms p99 {st['latency_p99_ms']:5.1f} ms  "
-            f"drop {st['frames_dropped_stale']}  bad {bad_s}  unsent {not_sent}  q {st['quality']:.2f}  "
-            f"est {st['estimate_status']}  link {link.get('state', '?')}"
-            f"{'' if link.get('timesync', True) else ' (no timesync)'}"
-            f"{_params_note(link.get('params_check'))}"
-        )
+        return format_status_line(self.status() if st is None else st)
 
     def _status_loop(self) -> None:
         while not self._stop.wait(self.status_period_s):

@@ -8,7 +8,6 @@ trajectories (TUM) and a trajectory-vs-truth plot (PNG) into the run directory.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import signal
@@ -85,18 +84,17 @@ class StatusWatch:
     """Keeps the companion's last status message (Zenoh ``companion/status``, as an operator would see it)."""
 
     def __init__(self, endpoint: str, key: str = "companion/status") -> None:
-        from companion.io.zenoh_io import open_session
+        from companion.io.zenoh_io import StatusSubscriber, open_session
 
         self.last: dict[str, Any] | None = None
         self.session = open_session("peer", [endpoint], [], False)
-        self.sub = self.session.declare_subscriber(key, self._on)
+        self.sub = StatusSubscriber(self.session, self._on, key)
 
-    def _on(self, sample: Any) -> None:
-        with contextlib.suppress(ValueError):
-            self.last = json.loads(sample.payload.to_bytes())
+    def _on(self, status: dict[str, Any]) -> None:
+        self.last = status
 
     def close(self) -> None:
-        self.sub.undeclare()
+        self.sub.close()
         self.session.close()
 
 
@@ -198,6 +196,10 @@ def run_demo(a: argparse.Namespace) -> int:
                     f"flying: {a.trajectory} over scene {a.scene} ({scene.name}), {a.duration:.0f} s at "
                     f"{a.speed} m/s, {a.height:.0f} m above ground, camera {a.camera_rate:g} Hz; "
                     f"companion estimator: {a.estimator}",
+                    flush=True,
+                )
+                print(
+                    f"  (its status line, from another terminal: companion watch --connect tcp/127.0.0.1:{zstatus})",
                     flush=True,
                 )
             elif "progress" in msg:

@@ -243,6 +243,40 @@ class StatusPublisher:
         self._pub.undeclare()
 
 
+class StatusSubscriber:
+    """Receives the daemon's JSON status messages (for ``companion watch`` on an operator's laptop).
+
+    sink(dict) is called from Zenoh's thread for each message that parses as a JSON object; others are
+    counted in ``bad``."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        sink: Callable[[dict[str, Any]], None],
+        key_expr: str = "companion/status",
+    ) -> None:
+        self.key_expr = key_expr
+        self.sink = sink
+        self.received = 0
+        self.bad = 0
+        self._sub = session.declare_subscriber(key_expr, self._on)
+
+    def _on(self, sample: Any) -> None:
+        try:
+            status = json.loads(sample.payload.to_bytes())
+        except (ValueError, UnicodeDecodeError):
+            self.bad += 1
+            return
+        if not isinstance(status, dict):
+            self.bad += 1
+            return
+        self.received += 1
+        self.sink(status)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
 def _json_default(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
