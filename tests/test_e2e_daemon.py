@@ -27,7 +27,7 @@ from companion.cli import apply_overrides, cmd_run
 from companion.config import load_config
 from companion.io.dem_store import save_dem_npz
 from companion.io.frames import encode_image
-from companion.io.zenoh_io import open_session
+from companion.io.zenoh_io import StatusSubscriber, open_session
 from sim_bridge.demo import free_port
 from sim_bridge.sim import SimConfig, make_trajectory
 from sim_bridge.terrain import degrade_dem, make_scene
@@ -150,13 +150,13 @@ class StatusListener:
     def __init__(self, connect: list[str]) -> None:
         self.session = open_session("peer", connect, [], False)
         self.last: dict | None = None
-        self.sub = self.session.declare_subscriber("companion/status", self._on)
+        self.sub = StatusSubscriber(self.session, self._on)
 
-    def _on(self, sample) -> None:
-        self.last = json.loads(sample.payload.to_bytes())
+    def _on(self, status: dict) -> None:
+        self.last = status
 
     def close(self) -> None:
-        self.sub.undeclare()
+        self.sub.close()
         self.session.close()
 
 

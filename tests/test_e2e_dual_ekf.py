@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from netutil import free_port, free_tcp_port, wait_for
 
-from companion.io.zenoh_io import open_session
+from companion.io.zenoh_io import StatusSubscriber, open_session
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs/europa_dual_ekf.toml"
@@ -63,7 +63,7 @@ class Flight:
         threading.Thread(target=self._read, daemon=True).start()
         self.status: dict | None = None
         self.session = open_session("peer", [f"tcp/127.0.0.1:{zcomp}"], [], False)
-        self.sub = self.session.declare_subscriber("companion/status", self._on_status)
+        self.sub = StatusSubscriber(self.session, self._on_status)
 
     def _read(self) -> None:
         assert self.sim.stdout is not None
@@ -75,8 +75,8 @@ class Flight:
             if "done" in msg:
                 self.done = msg["done"]
 
-    def _on_status(self, sample) -> None:
-        self.status = json.loads(sample.payload.to_bytes())
+    def _on_status(self, status: dict) -> None:
+        self.status = status
 
     def finish(self, timeout_s: float) -> tuple[dict, dict]:
         """Wait for the flight's end; stop the daemon; (the simulator's summary, the last status)."""
@@ -101,7 +101,7 @@ class Flight:
         if self.sim.poll() is None:
             self.sim.kill()
             self.sim.wait(5)
-        self.sub.undeclare()
+        self.sub.close()
         self.session.close()
 
 
