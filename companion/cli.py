@@ -21,6 +21,7 @@ import argparse
 import contextlib
 import json
 import logging
+import queue
 import signal
 import sys
 import threading
@@ -85,11 +86,9 @@ def cmd_check(path: str, sets: list[str]) -> int:
 
 def estimator_cameras(cfg: CompanionConfig) -> tuple[str, ...]:
     """Names of the configured cameras the estimator uses (first: the one the autopilot's offset is for)."""
-    if cfg.estimator.kind != "vis_thermal_ekf":
-        return ("nadir",)
-    return {"visible": ("visible",), "thermal": ("thermal",), "dual": ("visible", "thermal")}[
-        cfg.estimator.ekf.mode
-    ]
+    from companion.ekf.options import cameras_for_mode
+
+    return cameras_for_mode(cfg.estimator.ekf.mode) if cfg.estimator.kind == "vis_thermal_ekf" else ("nadir",)
 
 
 def cmd_check_autopilot(cfg: CompanionConfig, timeout_s: float) -> int:
@@ -121,42 +120,45 @@ def cmd_check_autopilot(cfg: CompanionConfig, timeout_s: float) -> int:
     return 1 if any(f.severity == ERROR for f in findings) else 0
 
 
+def _print_statuses(inbox: Any, key: str, connect: list[str], count: int, timeout_s: float, raw: bool) -> int:
+    """Print status messages from ``inbox`` until ``count`` (0: forever) or ``timeout_s`` without one."""
+    from companion.daemon import format_status_line
+
+    shown = 0
+    while count <= 0 or shown < count:
+        try:
+            st = inbox.get(timeout=timeout_s)
+        except queue.Empty:
+            where = ", ".join(connect) or "multicast scouting"
+            print(f"companion watch: no status on {key!r} within {timeout_s:g} s ({where})", file=sys.stderr)
+            return 1 if shown == 0 else 0
+        if raw:
+            line = json.dumps(st, sort_keys=True)
+        else:
+            try:
+                line = format_status_line(st)
+            except (KeyError, TypeError, ValueError):
+                line = json.dumps(st, sort_keys=True)  # another version's status: show it whole
+        print(line, flush=True)
+        shown += 1
+    return 0
+
+
 def cmd_watch(connect: list[str], key: str, count: int, timeout_s: float, raw: bool) -> int:
     """Print each status message of a running daemon (its status line, or the JSON with ``raw``)."""
-    import queue
-
-    from companion.daemon import format_status_line
     from companion.io.zenoh_io import StatusSubscriber, open_session
 
     inbox: queue.Queue[dict[str, Any]] = queue.Queue()
     session = open_session("peer", connect, [], multicast_scouting=not connect)
     sub = StatusSubscriber(session, inbox.put, key)
-    shown = 0
+    code = 0
     try:
-        while count <= 0 or shown < count:
-            try:
-                st = inbox.get(timeout=timeout_s)
-            except queue.Empty:
-                where = ", ".join(connect) or "multicast scouting"
-                print(
-                    f"companion watch: no status on {key!r} within {timeout_s:g} s ({where})", file=sys.stderr
-                )
-                return 1 if shown == 0 else 0
-            if raw:
-                line = json.dumps(st, sort_keys=True)
-            else:
-                try:
-                    line = format_status_line(st)
-                except (KeyError, TypeError, ValueError):
-                    line = json.dumps(st, sort_keys=True)  # another version's status: show it whole
-            print(line, flush=True)
-            shown += 1
-    except KeyboardInterrupt:
-        pass
+        with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C ends the watch, exit 0
+            code = _print_statuses(inbox, key, connect, count, timeout_s, raw)
     finally:
         sub.close()
         session.close()
-    return 0
+    return code
 
 
 def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:

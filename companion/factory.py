@@ -71,10 +71,11 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
         )
     if kind == "vis_thermal_ekf":
         from companion.constants import GRAVITY_MPS2
+        from companion.ekf.options import cameras_for_mode
         from companion.estimators.vis_thermal_ekf import EkfOptions, VisThermalEkfEstimator
 
         e = cfg.estimator.ekf
-        cams = {"visible": ("visible",), "thermal": ("thermal",), "dual": ("visible", "thermal")}[e.mode]
+        cams = cameras_for_mode(e.mode)
         ekf_opt = EkfOptions(
             mode=e.mode, max_landmarks_per_camera=e.max_landmarks_per_camera, sampling=e.sampling
         )

@@ -31,6 +31,12 @@ STATUS = {
 }
 
 
+def watch(port: int, *args: str) -> subprocess.CompletedProcess:
+    """``companion watch`` as its own process, connected to a companion's Zenoh endpoint on ``port``."""
+    cmd = [sys.executable, "-m", "companion", "watch", "--connect", f"tcp/127.0.0.1:{port}", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+
+
 def test_status_line_names_what_an_operator_needs() -> None:
     line = format_status_line(STATUS)
     for part in ("in  15.0 fps", "drop 2", "bad 1 (nadir:truncated 1)", "unsent 4", "est ok", "link up"):
@@ -52,21 +58,7 @@ def test_watch_prints_the_status_lines_of_a_publishing_companion() -> None:
 
     threading.Thread(target=publish, daemon=True).start()
     try:
-        out = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "companion",
-                "watch",
-                "--connect",
-                f"tcp/127.0.0.1:{port}",
-                "--count",
-                "2",
-            ],
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
+        out = watch(port, "--count", "2")
     finally:
         stop.set()
         pub.close()
@@ -81,21 +73,7 @@ def test_watch_says_when_nothing_arrives() -> None:
     session = open_session("peer", [], [f"tcp/127.0.0.1:{port}"], False)  # a companion that publishes nothing
     try:
         t0 = time.monotonic()
-        out = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "companion",
-                "watch",
-                "--connect",
-                f"tcp/127.0.0.1:{port}",
-                "--timeout",
-                "1.5",
-            ],
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
+        out = watch(port, "--timeout", "1.5")
     finally:
         session.close()
     assert out.returncode == 1 and out.stdout == ""
