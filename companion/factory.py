@@ -77,7 +77,11 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
         e = cfg.estimator.ekf
         cams = cameras_for_mode(e.mode)
         ekf_opt = EkfOptions(
-            mode=e.mode, max_landmarks_per_camera=e.max_landmarks_per_camera, sampling=e.sampling
+            mode=e.mode,
+            max_landmarks_per_camera=e.max_landmarks_per_camera,
+            sampling=e.sampling,
+            one_point_ransac=e.one_point_ransac,
+            ransac_threshold_px=e.ransac_threshold_px,
         )
         planet = cfg.origin.planet if cfg.origin is not None else "europa"
         p0 = cfg.estimator.initial_position_ned_m

@@ -252,6 +252,22 @@ class InverseDepthEkf:
         Hk = np.concatenate([H_pose, H_lm], axis=2)  # (k,2,12)
         return Hk @ Pk @ Hk.transpose(0, 2, 1) + np.eye(2) * sigma_px**2
 
+    def landmark_batch_terms(
+        self, lm_index: np.ndarray, H_pose: np.ndarray, H_lm: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(P H^T (n, 2k), H P H^T (2k, 2k)) of one pixel measurement (2 rows) per landmark, from the sparse
+        blocks (P H^T by gathering 12 columns per landmark). lm_index: (k,); H_pose, H_lm: (k,2,6)."""
+        self._flush()
+        k = len(lm_index)
+        cols = self._landmark_columns(lm_index)  # (k,12)
+        Hk = np.concatenate([H_pose, H_lm], axis=2)  # (k,2,12)
+        n = self.P.shape[0]
+        # P H^T: (n, 2k); column pair i = P[:, cols_i] @ Hk_i^T
+        PHt = np.einsum("nkc,kic->nki", self.P[:, cols.ravel()].reshape(n, k, 12), Hk).reshape(n, 2 * k)
+        # H P H^T: row pair i = Hk_i @ PHt[cols_i, :]
+        HPHt = np.einsum("kic,kcm->kim", Hk, PHt[cols]).reshape(2 * k, 2 * k)
+        return PHt, 0.5 * (HPHt + HPHt.T)
+
     def update_landmarks(
         self,
         lm_index: np.ndarray,
@@ -261,19 +277,12 @@ class InverseDepthEkf:
         sigma_px: float,
     ) -> np.ndarray:
         """Batch update with one pixel measurement (2 rows) per landmark; same result as ``update`` with the
-        dense H, computed from the sparse blocks (P H^T by gathering 12 columns per landmark).
+        dense H, computed from the sparse blocks (``landmark_batch_terms``).
 
         lm_index: (k,); H_pose, H_lm: (k,2,6); residual: (k,2) z - h. Returns the correction."""
-        self._flush()
         k = len(lm_index)
-        cols = self._landmark_columns(lm_index)  # (k,12)
-        Hk = np.concatenate([H_pose, H_lm], axis=2)  # (k,2,12)
-        n = self.P.shape[0]
-        # P H^T: (n, 2k); column pair i = P[:, cols_i] @ Hk_i^T
-        PHt = np.einsum("nkc,kic->nki", self.P[:, cols.ravel()].reshape(n, k, 12), Hk).reshape(n, 2 * k)
-        # S = H P H^T + R: row pair i = Hk_i @ PHt[cols_i, :]
-        S = np.einsum("kic,kcm->kim", Hk, PHt[cols]).reshape(2 * k, 2 * k) + np.eye(2 * k) * sigma_px**2
-        S = 0.5 * (S + S.T)
+        PHt, HPHt = self.landmark_batch_terms(lm_index, H_pose, H_lm)
+        S = HPHt + np.eye(2 * k) * sigma_px**2
         K = np.linalg.solve(S, PHt.T).T
         dx = K @ residual.reshape(2 * k)
         self.P = self.P - K @ PHt.T

@@ -24,6 +24,7 @@ from companion.ekf.altimeter import facet_encloses_beam, facet_range, select_fac
 from companion.ekf.features import Detections, match_predicted
 from companion.ekf.filter import VEHICLE_DIM, InverseDepthEkf
 from companion.ekf.options import EkfOptions, cameras_for_mode
+from companion.ekf.ransac import low_innovation_inliers
 from companion.ekf.sampling import budget_bandwidth, sample_new_landmarks
 from companion.ekf.so3 import euler_rate_matrix, rot_from_quat
 from companion.geometry import rpy_from_rot
@@ -63,6 +64,7 @@ class SlamCounters:
     landmarks_deleted: dict[str, int] = field(default_factory=dict)
     deleted_out_of_view: int = 0
     deleted_unmatched: int = 0
+    ransac_rejected: int = 0  # gated matches the 1-point RANSAC refused (``ransac``)
     matches: dict[str, int] = field(default_factory=dict)
 
 
@@ -241,6 +243,7 @@ class VisThermalSlam:
         rows_Hp: list[np.ndarray] = []
         rows_Hl: list[np.ndarray] = []
         rows_res: list[np.ndarray] = []
+        rows_cam: list[str] = []
         keep = np.ones(ekf.n_landmarks, bool)
         used_kp: dict[str, np.ndarray] = {}
         tracked_uv: dict[str, list[np.ndarray]] = {c: [] for c in self.camera_names}
@@ -289,23 +292,24 @@ class VisThermalSlam:
                     rows_Hp.append(proj.H_pose[vis[k]])
                     rows_Hl.append(proj.H_lm[vis[k]])
                     rows_res.append(det.uv[j] - proj.uv[vis[k]])
+                    rows_cam.append(cam_name)
                     used[j] = True
                     self._desc[lid] = det.desc[j]
-                    self._misses[lid] = 0
-                    matched_count[cam_name] += 1
                     tracked_uv[cam_name].append(det.uv[j])
                 else:
-                    self._misses[lid] = self._misses.get(lid, 0) + 1
-                    if self._misses[lid] > o.max_consecutive_misses:
-                        keep[li] = False
-                        self.counters.deleted_unmatched += 1
-                    else:
+                    self._missed(int(li), keep)
+                    if keep[li]:
                         tracked_uv[cam_name].append(proj.uv[vis[k]])
         # --- batch update with every camera's matches (one map, eq. 7) ---------------------------
         if rows_lm:
-            ekf.update_landmarks(
-                np.array(rows_lm), np.stack(rows_Hp), np.stack(rows_Hl), np.stack(rows_res), o.pixel_sigma_px
-            )
+            lm_rows = np.array(rows_lm)
+            accepted = self._update_matches(lm_rows, np.stack(rows_Hp), np.stack(rows_Hl), np.stack(rows_res))
+            for li, cam_name, ok in zip(lm_rows, rows_cam, accepted):
+                if ok:
+                    self._misses[int(ekf.lm_id[li])] = 0
+                    matched_count[cam_name] += 1
+                else:
+                    self._missed(int(li), keep)
         for ci, cam_name in enumerate(self.camera_names):
             self.counters.matches[cam_name] += matched_count[cam_name]
             self.counters.landmarks_deleted[cam_name] += int(np.sum(~keep & (ekf.lm_cam == ci)))
@@ -321,6 +325,50 @@ class VisThermalSlam:
             self._add_landmarks(ci, cam_name, det, used_kp[cam_name], tracked_uv[cam_name])
         self._frames_since_match = 0 if sum(matched_count.values()) > 0 else self._frames_since_match + 1
         return self.pose(int(stamp_us), matched_count)
+
+    def _missed(self, li: int, keep: np.ndarray) -> None:
+        """Landmark ``li`` was not matched (or its match was refused): delete it after too many in a row."""
+        assert self.ekf is not None
+        lid = int(self.ekf.lm_id[li])
+        self._misses[lid] = self._misses.get(lid, 0) + 1
+        if self._misses[lid] > self.opts.max_consecutive_misses and keep[li]:
+            keep[li] = False
+            self.counters.deleted_unmatched += 1
+
+    def _update_matches(self, lm: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, res: np.ndarray) -> np.ndarray:
+        """EKF update with the gated matches of every camera (k of them); returns (k,) bool, the ones used.
+
+        Without ``one_point_ransac`` all of them, in one batch. With it (``ransac``): the low-innovation
+        inliers first, then the rest re-gated against the corrected state, one at a time in a batch."""
+        ekf = self.ekf
+        assert ekf is not None
+        o = self.opts
+        k = len(lm)
+        if not o.one_point_ransac or k < o.ransac_min_matches:
+            ekf.update_landmarks(lm, Hp, Hl, res, o.pixel_sigma_px)
+            return np.ones(k, bool)
+        _, HPHt = ekf.landmark_batch_terms(lm, Hp, Hl)
+        low = low_innovation_inliers(HPHt, res, o.pixel_sigma_px, o.ransac_threshold_px)
+        dx = ekf.update_landmarks(lm[low], Hp[low], Hl[low], res[low], o.pixel_sigma_px)
+        accepted = low.copy()
+        rest = np.flatnonzero(~low)
+        if len(rest):
+            # high-innovation inliers: residuals moved by the correction (first order, H dx), gated with the
+            # corrected covariance
+            lm_dx = dx[VEHICLE_DIM:].reshape(-1, lmk.LANDMARK_DIM)[lm[rest]]
+            r2 = (
+                res[rest]
+                - np.einsum("kij,j->ki", Hp[rest], dx[:6])
+                - np.einsum("kij,kj->ki", Hl[rest], lm_dx)
+            )
+            S2 = ekf.landmark_innovation_covariances(lm[rest], Hp[rest], Hl[rest], o.pixel_sigma_px)
+            chi2 = np.einsum("ki,ki->k", r2, np.linalg.solve(S2, r2[:, :, None])[:, :, 0])
+            high = rest[chi2 <= o.gate_chi2]
+            if len(high):
+                ekf.update_landmarks(lm[high], Hp[high], Hl[high], r2[chi2 <= o.gate_chi2], o.pixel_sigma_px)
+                accepted[high] = True
+        self.counters.ransac_rejected += int(k - accepted.sum())
+        return accepted
 
     def _add_landmarks(
         self, ci: int, cam_name: str, det: Detections, used: np.ndarray, tracked: list[np.ndarray]
