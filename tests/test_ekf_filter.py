@@ -32,9 +32,12 @@ def _fly(
     imu_noise: ImuNoise | None = None,
     cam_hz: float = 2.0,
     imu_delay_s: float = 0.0,
+    outlier_px: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, VisThermalSlam]:
     """Run the SLAM over the synthetic scene; returns per-frame NEES (F, 2) for (position, attitude), the
-    per-frame estimated positions (F, 3) and the SLAM. The initial error is drawn from the filter's prior."""
+    per-frame estimated positions (F, 3) and the SLAM. The initial error is drawn from the filter's prior.
+    With ``outlier_px`` a seventh of the keypoints of each frame (a different seventh each frame) is that
+    far off its point, in a random direction (a mismatch, or a keypoint on a glint or a shadow's edge)."""
     traj = straight_flight(duration_s=duration_s, speed_mps=speed_mps)
     imu = imu_samples(traj, 100.0, imu_noise, seed)
     slam = VisThermalSlam(opts, {"visible": camera_model()}, G)
@@ -59,7 +62,11 @@ def _fly(
             slam.add_altimeter(arrival, float(-st.p_world[2] / st.R_world_body[2, 2]) + rng.normal(0, 0.1))
         else:
             st = traj.state_at(arrival * 1e-6)
-            det, _ = detections(SCENE, st.R_world_body, st.p_world, rng, pixel_sigma=0.7)
+            det, ids = detections(SCENE, st.R_world_body, st.p_world, rng, pixel_sigma=0.7)
+            if outlier_px:
+                bad = (ids + len(nees)) % 7 == 0
+                ang = rng.uniform(0, 2 * np.pi, int(bad.sum()))
+                det.uv[bad] += outlier_px * np.column_stack([np.cos(ang), np.sin(ang)])
             pose = slam.process_frame(arrival, {"visible": det})
             e = _error(st.p_world, st.R_world_body, slam.ekf)
             P = slam.ekf.covariance()[:6, :6]

@@ -1,11 +1,17 @@
 """1-point RANSAC over the EKF's matches (companion.ekf.ransac): the pure hypothesis-and-support step on a
-linear model with known outliers, and the SLAM refusing keypoints that drift on the synthetic scene."""
+linear model with known outliers, and the SLAM refusing corrupted keypoints on the synthetic scene."""
 
 from __future__ import annotations
 
-import numpy as np
+from dataclasses import replace
 
+import numpy as np
+from test_ekf_filter import _fly
+from test_ekf_scene import straight_flight
+
+from companion.ekf.options import EkfOptions
 from companion.ekf.ransac import low_innovation_inliers
+from sim_bridge.trajectory import ImuNoise
 
 
 def _linear_batch(seed: int, k: int, outliers: np.ndarray, outlier_px: float):
@@ -37,3 +43,27 @@ def test_low_innovation_inliers_keep_a_clean_batch():
     HPHt, r = _linear_batch(7, 30, np.zeros(0, int), 0.0)
     assert low_innovation_inliers(HPHt, r, 0.2, 1.0).sum() >= 28
     assert low_innovation_inliers(HPHt, r[:0], 0.2, 1.0).shape == (0,)
+
+
+def test_slam_refuses_matches_the_others_disagree_with():
+    """A seventh of each frame's keypoints 4 px off their points: with a loose attitude prediction (a noisy
+    gyro) each passes its own gate and the plain filter takes them in; 1-point RANSAC refuses about as many
+    matches as were corrupted, barely any on a clean flight, and ends closer to the truth."""
+    gyro = 5e-3  # rad/s/sqrt(Hz): ~30x the default part, so the gates are several pixels wide
+    base = EkfOptions(mode="visible", pixel_sigma_px=0.7, seed=0, gyro_noise_density=gyro)
+    imu_noise = ImuNoise(gyro_noise_density=gyro)
+    truth = straight_flight(duration_s=16.0, speed_mps=3.0).state_at(15.5).p_world  # _fly's last frame
+    out = {}
+    for outlier_px, ransac in ((0.0, True), (4.0, False), (4.0, True)):
+        opts = replace(base, one_point_ransac=ransac)
+        runs = [_fly(s, opts, 3.0, imu_noise=imu_noise, outlier_px=outlier_px) for s in range(3)]
+        rejected = sum(slam.counters.ransac_rejected for _, _, slam in runs)
+        tried = rejected + sum(sum(slam.counters.matches.values()) for _, _, slam in runs)
+        err = float(np.mean([np.linalg.norm(est[-1] - truth) for _, est, _ in runs]))
+        nees = float(np.mean([n[:, 0].mean() for n, _, _ in runs]))
+        out[outlier_px, ransac] = (rejected / tried, err, nees)
+    assert out[0.0, True][0] < 0.04, out
+    assert out[4.0, False][0] == 0.0, out
+    assert 0.07 < out[4.0, True][0] < 0.25, out  # a seventh of the keypoints is 0.14
+    assert out[4.0, True][1] < out[4.0, False][1], out
+    assert out[4.0, True][2] < out[4.0, False][2], out
