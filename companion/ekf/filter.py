@@ -192,7 +192,10 @@ class InverseDepthEkf:
         """
         self._flush()
         PHt = self.P @ H.T
-        S = H @ PHt + R_meas
+        return self._correct(PHt, H @ PHt + R_meas, residual)
+
+    def _correct(self, PHt: np.ndarray, S: np.ndarray, residual: np.ndarray) -> np.ndarray:
+        """Gain K = P H^T S^-1, P -= K H P (symmetrised), inject K r; returns the correction K r."""
         K = np.linalg.solve(S, PHt.T).T
         dx = K @ residual
         self.P = self.P - K @ PHt.T
@@ -202,7 +205,7 @@ class InverseDepthEkf:
 
     def update_columns(
         self, cols: np.ndarray, H_cols: np.ndarray, residual: np.ndarray, R_meas: np.ndarray
-    ) -> np.ndarray | None:
+    ) -> np.ndarray:
         """``update`` for a Jacobian that is zero outside the error-state columns ``cols`` (c,): H_cols is
         its (m, c) non-zero part. Same result as the dense form, without the (m, n) H and its n^2 products.
 
@@ -220,13 +223,9 @@ class InverseDepthEkf:
             self.P -= np.outer(b, b)
             V = VEHICLE_DIM
             self.P[:V, :V] = 0.5 * (self.P[:V, :V] + self.P[:V, :V].T)
-        else:
-            K = np.linalg.solve(S, PHt.T).T
-            dx = K @ residual
-            self.P = self.P - K @ PHt.T
-            self.P = 0.5 * (self.P + self.P.T)
-        self._inject(dx)
-        return dx
+            self._inject(dx)
+            return dx
+        return self._correct(PHt, S, residual)
 
     def innovation_covariance_columns(
         self, cols: np.ndarray, H_cols: np.ndarray, R_meas: np.ndarray
@@ -282,13 +281,7 @@ class InverseDepthEkf:
         lm_index: (k,); H_pose, H_lm: (k,2,6); residual: (k,2) z - h. Returns the correction."""
         k = len(lm_index)
         PHt, HPHt = self.landmark_batch_terms(lm_index, H_pose, H_lm)
-        S = HPHt + np.eye(2 * k) * sigma_px**2
-        K = np.linalg.solve(S, PHt.T).T
-        dx = K @ residual.reshape(2 * k)
-        self.P = self.P - K @ PHt.T
-        self.P = 0.5 * (self.P + self.P.T)
-        self._inject(dx)
-        return dx
+        return self._correct(PHt, HPHt + np.eye(2 * k) * sigma_px**2, residual.reshape(2 * k))
 
     def innovation_covariance(self, H: np.ndarray, R_meas: np.ndarray) -> np.ndarray:
         """S = H P H^T + R for a candidate measurement (m, m)."""
