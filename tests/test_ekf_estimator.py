@@ -127,6 +127,33 @@ def test_bad_and_missing_frames_are_survived(flight):
     assert est.on_frames({"nadir": flight["frames"][0][1]["visible"]}) is None  # not one of its cameras
 
 
+def test_a_diverged_filter_restarts_at_the_last_good_pose(flight):
+    """A filter whose state goes non-finite is restarted at its last good pose: that frame gives no estimate,
+    reset_counter moves once, the flight's counters carry on, and the next frames are estimated again."""
+    est = _estimator(flight, "dual")
+    imu, alt = flight["imu"], flight["alt"]
+    ii = ia = 0
+    out = []
+    for k, (t, fs) in enumerate(flight["frames"]):
+        while ii < len(imu) and imu[ii].stamp_us <= t:
+            est.on_imu(imu[ii])
+            ii += 1
+        while ia < len(alt) and alt[ia].stamp_us <= t:
+            est.on_altimeter(alt[ia])
+            ia += 1
+        if k == 5:
+            est.slam.ekf.v[:] = np.nan  # diverged: propagation to this frame spreads it to the whole state
+            imu_before = est.slam.counters.imu
+        out.append(est.on_frames(dict(fs)))
+    est.close()
+    assert out[5] is None and all(e is not None for e in out[:5] + out[6:])
+    assert est.counters["reinit"] == 1 and out[-1].reset_counter == out[4].reset_counter + 1
+    assert est.slam.counters.imu > imu_before  # the same counters, not a fresh set
+    assert all(e.is_sendable() for e in out[7:])
+    truth = flight["states"][-1].p_world
+    assert np.linalg.norm(out[-1].p_body_in_world_m - truth) < 3.0
+
+
 def test_configuration_errors_and_initial_attitude(flight):
     intr = flight["intr"]
     with pytest.raises(ValueError):

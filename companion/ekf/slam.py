@@ -116,6 +116,14 @@ class VisThermalSlam:
             self._hold, self._hold_stamp = (older[-1][1], older[-1][2]), older[-1][0]
         self._queue = [s for s in self._queue if s[0] > stamp_us]
 
+    def restarted(self) -> VisThermalSlam:
+        """A new, unstarted SLAM with the same options and cameras (no landmarks, no queued IMU) that keeps
+        the flight's health counters and the last altimeter range (the depth prior of the first landmarks)."""
+        slam = VisThermalSlam(self.opts, self.cameras, self.gravity_mps2)
+        slam._last_range = self._last_range
+        slam.counters = self.counters
+        return slam
+
     # ------------------------------------------------------------------ inputs
     def add_imu(self, stamp_us: int, accel_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
         """Queue one IMU sample (body FRD specific force m/s^2 and rate rad/s)."""

@@ -251,10 +251,7 @@ class VisThermalEkfEstimator:
         self.counters["reinit"] += 1
         self.reset_counter += 1
         good = self._last_good
-        slam = VisThermalSlam(self.options, self._models, self.slam.gravity_mps2)
-        slam._last_range = self.slam._last_range  # keep the depth prior across the restart
-        slam.counters = self.slam.counters  # health counters count over the flight
-        self.slam = slam
+        self.slam = self.slam.restarted()
         if good is None:
             self._start(stamp_us)
         else:
