@@ -1,7 +1,7 @@
 """1-point RANSAC for the EKF's batch of visual matches (Civera, Grasa, Davison, Montiel, "1-point RANSAC
 for EKF filtering. Application to real-time structure from motion and visual odometry", JFR 2010).
 
-Paper 2 gates each match on its own (Mahalanobis, eq. 7); a match can pass that gate and still disagree
+Paper 2 gates each match on its own (a Mahalanobis gate); a match can pass that gate and still disagree
 with the others: a keypoint that drifts a little each frame (a glint that moves with the view, an edge of
 a shadow) is individually plausible while the vehicle's prediction is loose. Civera's answer, the field's
 standard for inverse-depth EKF-SLAM: a hypothesis is the state corrected by ONE match; the matches it

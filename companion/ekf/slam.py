@@ -347,7 +347,8 @@ class VisThermalSlam:
         """EKF update with the gated matches of every camera (k of them); returns (k,) bool, the ones used.
 
         Without ``one_point_ransac`` all of them, in one batch. With it (``ransac``): the low-innovation
-        inliers first, then the rest re-gated against the corrected state, one at a time in a batch."""
+        inliers in a first batch, then the others that pass their gate again against the corrected state
+        (each on its own) in a second."""
         ekf = self.ekf
         assert ekf is not None
         o = self.opts

@@ -117,6 +117,7 @@ class VisThermalEkfEstimator:
             "late_imu": 0,
             "stale_frames": 0,
             "altimeter_updates": 0,
+            "matches_refused": 0,  # gated matches the 1-point RANSAC refused
         }
 
     # -- autopilot inputs ----------------------------------------------------------------------------
@@ -209,6 +210,7 @@ class VisThermalEkfEstimator:
                 late_imu=c.late_imu,
                 stale_frames=c.stale_frames,
                 altimeter_updates=c.altimeter_updates,
+                matches_refused=c.ransac_rejected,
             )
             ekf = self.slam.ekf
             if ekf is None or not ekf.is_finite() or not np.all(np.isfinite(pose.p_world)):
