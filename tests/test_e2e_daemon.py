@@ -27,8 +27,8 @@ from companion.cli import apply_overrides, cmd_run
 from companion.config import load_config
 from companion.io.dem_store import save_dem_npz
 from companion.io.frames import encode_image
-from companion.io.zenoh_io import StatusSubscriber, open_session
-from sim_bridge.demo import free_port
+from companion.io.zenoh_io import open_session
+from sim_bridge.demo import StatusWatch, free_port
 from sim_bridge.sim import SimConfig, make_trajectory
 from sim_bridge.terrain import degrade_dem, make_scene
 
@@ -144,22 +144,6 @@ def companion_config(
     )
 
 
-class StatusListener:
-    """Keeps the daemon's last status message from its Zenoh status topic."""
-
-    def __init__(self, connect: list[str]) -> None:
-        self.session = open_session("peer", connect, [], False)
-        self.last: dict | None = None
-        self.sub = StatusSubscriber(self.session, self._on)
-
-    def _on(self, status: dict) -> None:
-        self.last = status
-
-    def close(self) -> None:
-        self.sub.close()
-        self.session.close()
-
-
 def estimate_errors(out: Path) -> np.ndarray:
     truth = np.loadtxt(out / "truth.tum", ndmin=2)
     est = np.loadtxt(out / "estimate.tum", ndmin=2)
@@ -245,11 +229,11 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
         dem, ground, endpoints, f"udpout:127.0.0.1:{mport}", [f"tcp/127.0.0.1:{zcomp}"], case.estimator
     )
     daemon = threading.Thread(target=cmd_run, args=(cfg, stop), daemon=True)
-    status: StatusListener | None = None
+    status: StatusWatch | None = None
     try:
         assert sim.ready.wait(60)
         daemon.start()
-        status = StatusListener([f"tcp/127.0.0.1:{zcomp}"])  # an operator's laptop connects to the companion
+        status = StatusWatch(f"tcp/127.0.0.1:{zcomp}")  # an operator's laptop connects to the companion
         assert wait_for(lambda: status is not None and status.last is not None, 60.0, 0.1), "no status"
         time.sleep(6.0)  # mid-flight: throw every kind of bad frame at the daemon
         for _, payload in bad_payloads(time.time_ns() // 1000):
@@ -352,11 +336,11 @@ def test_serial_link_cut_restored_and_autopilot_reboot(tmp_path: Path, dem_path)
     )
     daemon = threading.Thread(target=cmd_run, args=(cfg, stop), daemon=True)
     states: list[str] = []
-    status: StatusListener | None = None
+    status: StatusWatch | None = None
     try:
         daemon.start()
         time.sleep(2.0)
-        status = StatusListener([f"tcp/127.0.0.1:{zcomp}"])
+        status = StatusWatch(f"tcp/127.0.0.1:{zcomp}")
         time.sleep(12.0)
         bridge.connected.clear()  # pull the cable for 5 s
         time.sleep(5.0)

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from netutil import free_port, free_tcp_port, wait_for
 
-from companion.io.zenoh_io import StatusSubscriber, open_session
+from sim_bridge.demo import StatusWatch
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs/europa_dual_ekf.toml"
@@ -61,9 +61,7 @@ class Flight:
         )
         self.done: dict | None = None
         threading.Thread(target=self._read, daemon=True).start()
-        self.status: dict | None = None
-        self.session = open_session("peer", [f"tcp/127.0.0.1:{zcomp}"], [], False)
-        self.sub = StatusSubscriber(self.session, self._on_status)
+        self.watch = StatusWatch(f"tcp/127.0.0.1:{zcomp}")
 
     def _read(self) -> None:
         assert self.sim.stdout is not None
@@ -75,15 +73,12 @@ class Flight:
             if "done" in msg:
                 self.done = msg["done"]
 
-    def _on_status(self, status: dict) -> None:
-        self.status = status
-
     def finish(self, timeout_s: float) -> tuple[dict, dict]:
         """Wait for the flight's end; stop the daemon; (the simulator's summary, the last status)."""
         try:
             self.sim.wait(timeout=timeout_s)
             assert wait_for(lambda: self.done is not None, 2.0), "simulator did not report its summary"
-            status = self.status
+            status = self.watch.last
         finally:
             self.close()
         (self.out / "status.json").write_text(json.dumps(status, indent=1))
@@ -101,8 +96,7 @@ class Flight:
         if self.sim.poll() is None:
             self.sim.kill()
             self.sim.wait(5)
-        self.sub.close()
-        self.session.close()
+        self.watch.close()
 
 
 def errors_vs_distance(out: Path) -> tuple[np.ndarray, np.ndarray]:
