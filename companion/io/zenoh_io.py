@@ -247,7 +247,7 @@ class StatusSubscriber:
     """Receives the daemon's JSON status messages (for ``companion watch`` on an operator's laptop).
 
     sink(dict) is called from Zenoh's thread for each message that parses as a JSON object; others are
-    counted in ``bad``."""
+    skipped (a publisher of another kind on the key must not stop the watch)."""
 
     def __init__(
         self,
@@ -257,21 +257,15 @@ class StatusSubscriber:
     ) -> None:
         self.key_expr = key_expr
         self.sink = sink
-        self.received = 0
-        self.bad = 0
         self._sub = session.declare_subscriber(key_expr, self._on)
 
     def _on(self, sample: Any) -> None:
         try:
             status = json.loads(sample.payload.to_bytes())
         except (ValueError, UnicodeDecodeError):
-            self.bad += 1
             return
-        if not isinstance(status, dict):
-            self.bad += 1
-            return
-        self.received += 1
-        self.sink(status)
+        if isinstance(status, dict):
+            self.sink(status)
 
     def close(self) -> None:
         self._sub.undeclare()
