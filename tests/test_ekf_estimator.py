@@ -65,6 +65,22 @@ def _estimator(flight, mode: str, **kw) -> VisThermalEkfEstimator:
     )
 
 
+class _Feeder:
+    """Hands the flight's IMU and altimeter samples to the estimator in stamp order, up to a frame's time."""
+
+    def __init__(self, est: VisThermalEkfEstimator, flight) -> None:
+        self.est, self.imu, self.alt = est, flight["imu"], flight["alt"]
+        self.ii = self.ia = 0
+
+    def until(self, t_us: int) -> None:
+        while self.ii < len(self.imu) and self.imu[self.ii].stamp_us <= t_us:
+            self.est.on_imu(self.imu[self.ii])
+            self.ii += 1
+        while self.ia < len(self.alt) and self.alt[self.ia].stamp_us <= t_us:
+            self.est.on_altimeter(self.alt[self.ia])
+            self.ia += 1
+
+
 @pytest.mark.parametrize("mode", ["visible", "thermal", "dual"])
 def test_estimator_tracks_a_rendered_descent(flight, mode):
     est = _estimator(flight, mode)
@@ -100,16 +116,10 @@ def test_detections_path_equals_frames_path(flight):
 
 def test_bad_and_missing_frames_are_survived(flight):
     est = _estimator(flight, "dual")
-    imu, alt = flight["imu"], flight["alt"]
-    ii = ia = 0
+    feed = _Feeder(est, flight)
     out = []
     for k, (t, fs) in enumerate(flight["frames"][:8]):
-        while ii < len(imu) and imu[ii].stamp_us <= t:
-            est.on_imu(imu[ii])
-            ii += 1
-        while ia < len(alt) and alt[ia].stamp_us <= t:
-            est.on_altimeter(alt[ia])
-            ia += 1
+        feed.until(t)
         fs = dict(fs)
         if k == 3:
             fs["thermal"] = Frame(t, "thermal", np.zeros((100, 100), np.uint16))  # mis-sized
@@ -131,16 +141,10 @@ def test_a_diverged_filter_restarts_at_the_last_good_pose(flight):
     """A filter whose state goes non-finite is restarted at its last good pose: that frame gives no estimate,
     reset_counter moves once, the flight's counters carry on, and the next frames are estimated again."""
     est = _estimator(flight, "dual")
-    imu, alt = flight["imu"], flight["alt"]
-    ii = ia = 0
+    feed = _Feeder(est, flight)
     out = []
     for k, (t, fs) in enumerate(flight["frames"]):
-        while ii < len(imu) and imu[ii].stamp_us <= t:
-            est.on_imu(imu[ii])
-            ii += 1
-        while ia < len(alt) and alt[ia].stamp_us <= t:
-            est.on_altimeter(alt[ia])
-            ia += 1
+        feed.until(t)
         if k == 5:
             est.slam.ekf.v[:] = np.nan  # diverged: propagation to this frame spreads it to the whole state
             imu_before = est.slam.counters.imu
