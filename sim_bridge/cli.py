@@ -4,7 +4,8 @@
   ``--world europa`` flies paper 2's visible + thermal camera pair over Europa (``--trajectory 1..10``);
 - ``demo``: the README's main job — starts ``sim`` and ``companion run`` on loopback, shows progress,
   prints the error table at the end (computed with evo) and writes a plot and TUM trajectories;
-- ``record`` / ``replay``: Zenoh camera frames to and from rosbag2 (MCAP) bags (sim_bridge.recording);
+- ``record`` / ``replay``: Zenoh camera frames to and from rosbag2 (MCAP) bags, ``recover``: a readable bag
+  from one whose recorder was killed (sim_bridge.recording);
 - ``sitl-camera``: the nadir camera for an ArduPilot / PX4 SITL (sim_bridge.sitl_bridge, deploy/SITL.md).
 """
 
@@ -167,17 +168,18 @@ def main(argv: list[str] | None = None) -> int:
     pd.add_argument("--estimator", default="terrain_lba", choices=["georef", "terrain_lba"])
     pd.add_argument("--out", default=None, help="run directory (default runs/demo-<time>)")
     pd.add_argument("--config", default="configs/sim_mars.toml", help="companion config template")
-    from sim_bridge.recording import add_record_parser, add_replay_parser
+    from sim_bridge.recording import add_record_parser, add_recover_parser, add_replay_parser
     from sim_bridge.sitl_bridge import add_sitl_camera_parser
 
     add_record_parser(sub)
     add_replay_parser(sub)
+    add_recover_parser(sub)
     add_sitl_camera_parser(sub)
     a = ap.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr
     )
-    if getattr(a, "func", None) is not None:  # record / replay / sitl-camera
+    if getattr(a, "func", None) is not None:  # record / replay / recover / sitl-camera
         return int(a.func(a))
     if a.cmd == "sim":
         if a.zenoh_listen is None:

@@ -13,6 +13,10 @@ Foxglove or rosbags, and a bag recorded by ROS 2 replays here.
   decode as the image it claims to be is counted by reason and skipped. ``restamp`` rewrites the header
   stamp to the replay time (so a live companion's StampGate accepts it) and leaves every other byte,
   pixels included, as recorded.
+- ``recover_bag`` rebuilds a readable bag from one whose recorder was killed (power cut, SIGKILL, a full
+  disk): such a bag has no metadata.yaml and its MCAP no index or footer, and no reader opens it. What the
+  file holds up to the first damaged record is copied into a new bag; the chunk being filled when the
+  recorder died (at most ~1 MiB, a few frames) is lost. ROS 2 answers this with ``ros2 bag reindex``.
 """
 
 from __future__ import annotations
@@ -22,14 +26,18 @@ import queue
 import struct
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
 import zenoh
+from mcap.exceptions import McapError
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
 from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer
 from rosbags.rosbag2.errors import WriterError
+from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_typestore
 
 from companion.io.frames import COMPRESSED_MSGTYPE, IMAGE_MSGTYPE, FrameError, decode_frame
@@ -446,6 +454,183 @@ class BagReplayer:
 
 
 # --------------------------------------------------------------------------------------------------------
+# recovery of a bag whose recorder died
+
+
+@dataclass
+class RecoveryResult:
+    """What ``recover_bag`` copied."""
+
+    out: str
+    """The new bag directory."""
+    messages: dict[str, int] = field(default_factory=dict)
+    """Messages copied per topic."""
+    skipped_topics: dict[str, str] = field(default_factory=dict)
+    """Topics not copied -> why (a type whose definition is unknown)."""
+    stopped: list[str] = field(default_factory=list)
+    """Per source file that could not be read to its end: where and why (the rest of it is lost)."""
+    first_ns: int = 0
+    last_ns: int = 0
+    """Log times (Unix ns) of the first and last message copied."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "out": self.out,
+            "messages": dict(self.messages),
+            "skipped_topics": dict(self.skipped_topics),
+            "stopped": list(self.stopped),
+            "duration_s": round((self.last_ns - self.first_ns) * 1e-9, 3) if self.messages else 0.0,
+        }
+
+
+# (topic, msgtype, message definition text or "", offered QoS profiles (YAML) or "", log time ns, payload)
+_RawMessage = tuple[str, str, str, str, int, bytes]
+
+
+def _mcap_messages(path: Path, res: RecoveryResult) -> Iterator[_RawMessage]:
+    """Messages of an MCAP file in file order, read record by record (mcap's StreamReader, which needs no
+    index or footer), up to the first truncated or corrupt record."""
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    count = 0
+    with path.open("rb") as f:
+        try:
+            for rec in StreamReader(f, validate_crcs=True).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Message) and rec.channel_id in channels:
+                    ch = channels[rec.channel_id]
+                    sc = schemas.get(ch.schema_id)
+                    msgtype = sc.name if sc is not None else ""
+                    msgdef = sc.data.decode("utf-8", errors="replace") if sc is not None else ""
+                    qos = ch.metadata.get("offered_qos_profiles", "")
+                    count += 1
+                    yield ch.topic, msgtype, msgdef, qos, rec.log_time, rec.data
+        except (McapError, ValueError, struct.error, OSError) as exc:  # EndOfFile, bad CRC, bad opcode, ...
+            res.stopped.append(f"{path.name}: after {count} messages: {type(exc).__name__} {exc}".strip())
+
+
+def _sqlite_messages(path: Path, res: RecoveryResult) -> Iterator[_RawMessage]:
+    """Messages of a rosbag2 sqlite3 file in insertion order: what was committed. A killed writer leaves a hot
+    journal that sqlite rolls back on opening, so the file is read from a copy and the source is never
+    modified. (rosbags' sqlite3 writer, ``record --storage sqlite3``, commits only when closed: a killed one
+    leaves nothing; ROS 2's recorder commits as it goes.)"""
+    import shutil
+    import sqlite3
+    import tempfile
+
+    count = 0
+    tmp = Path(tempfile.mkdtemp(prefix="recover-"))
+    try:
+        for part in path.parent.glob(path.name + "*"):  # the file and its -journal / -wal
+            shutil.copy2(part, tmp / part.name)
+        con = sqlite3.connect(tmp / path.name)
+        try:
+            cols = {row[1] for row in con.execute("PRAGMA table_info(topics)")}
+            qos_col = "offered_qos_profiles" if "offered_qos_profiles" in cols else "''"
+            topics = {
+                tid: (name, msgtype, qos or "")
+                for tid, name, msgtype, qos in con.execute(f"SELECT id, name, type, {qos_col} FROM topics")
+            }
+            for tid, stamp, data in con.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY id"):
+                if tid in topics:
+                    name, msgtype, qos = topics[tid]
+                    count += 1
+                    yield name, msgtype, "", qos, int(stamp), bytes(data)
+        finally:
+            con.close()
+    except (sqlite3.Error, OSError) as exc:
+        res.stopped.append(f"{path.name}: after {count} messages: {type(exc).__name__} {exc}")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _types_from_definition(msgdef: str, msgtype: str, known: Any) -> dict[str, Any]:
+    """The types a ROS 2 message definition as stored in a bag describes: the message's own fields, then each
+    dependency after a line of 80 "=" and "MSG: pkg/Type" (the rosbag2 / MCAP "ros2msg" layout). Types the
+    store ``known`` already has are left out. Raises on a definition rosbags cannot parse."""
+    from rosbags.typesys import get_types_from_msg
+
+    parts = msgdef.split("=" * 80 + "\n")
+    types = dict(get_types_from_msg(parts[0], msgtype))
+    for part in parts[1:]:
+        head, _, body = part.partition("\n")
+        name = head.removeprefix("MSG:").strip()
+        if "/msg/" not in name:
+            pkg, _, short = name.partition("/")
+            name = f"{pkg}/msg/{short}"
+        if name not in known.types:
+            types.update(get_types_from_msg(body, name))
+    return types
+
+
+def _recovery_sources(src: Path) -> list[Path]:
+    if src.is_file():
+        return [src]
+    if not src.is_dir():
+        raise FileNotFoundError(f"{src}: no such bag directory or file")
+    import re
+
+    def split_number(p: Path) -> list[Any]:  # ROS 2 splits as bag_0, bag_1, ..., bag_10: numeric order
+        return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
+
+    files = sorted(src.glob("*.mcap"), key=split_number) + sorted(src.glob("*.db3"), key=split_number)
+    if not files:
+        raise FileNotFoundError(f"{src}: no .mcap or .db3 file in it")
+    return files
+
+
+def recover_bag(src: str | Path, out: str | Path | None = None) -> RecoveryResult:
+    """Copy every readable message of the bag ``src`` (a directory of .mcap / .db3 files, or one file) into a
+    new MCAP bag ``out`` (default: ``src`` + "-recovered"), which any rosbag2 reader and ``replay`` open.
+
+    Payloads and log times are copied as they are. A message whose type is neither in the ROS 2 Humble
+    type store nor described by a definition the file carries is left out, its topic listed in
+    ``skipped_topics``. Raises FileNotFoundError when there is nothing to read and WriterError when ``out``
+    exists."""
+    src = Path(src)
+    files = _recovery_sources(src)
+    base = src if src.is_dir() else src.parent / src.stem
+    out_path = Path(out) if out is not None else base.with_name(base.name + "-recovered")
+    res = RecoveryResult(str(out_path))
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    writer = Writer(out_path, version=ROSBAG_VERSION, storage_plugin=StoragePlugin.MCAP)
+    writer.open()
+    conns: dict[tuple[str, str], Any] = {}
+    try:
+        for path in files:
+            reader = _mcap_messages(path, res) if path.suffix == ".mcap" else _sqlite_messages(path, res)
+            for topic, msgtype, msgdef, qos, log_ns, data in reader:
+                conn = conns.get((topic, msgtype))
+                if conn is None:
+                    if topic in res.skipped_topics:
+                        continue
+                    if msgtype not in typestore.types:
+                        try:  # a type of the recording's own: register it from the definition in the file
+                            typestore.register(_types_from_definition(msgdef, msgtype, typestore))
+                        except Exception as exc:  # noqa: BLE001 - any parse failure means "unknown type"
+                            res.skipped_topics[topic] = f"{msgtype or 'no type'}: definition unknown ({exc})"
+                            continue
+                    try:
+                        profiles = parse_qos(qos) if qos else []
+                    except Exception:  # noqa: BLE001 - QoS is advisory: a bad one is dropped, not fatal
+                        profiles = []
+                    conn = writer.add_connection(
+                        topic, msgtype, typestore=typestore, offered_qos_profiles=profiles
+                    )
+                    conns[(topic, msgtype)] = conn
+                writer.write(conn, log_ns, data)
+                res.messages[topic] = res.messages.get(topic, 0) + 1
+                res.first_ns = min(res.first_ns or log_ns, log_ns)
+                res.last_ns = max(res.last_ns, log_ns)
+    finally:
+        writer.close()
+    return res
+
+
+# --------------------------------------------------------------------------------------------------------
 # command line (``python -m sim_bridge record`` / ``replay``; sim_bridge.cli registers these)
 
 
@@ -499,7 +684,12 @@ def add_record_parser(sub: Any) -> None:
     p.add_argument("--status", action="store_true", help="also record the companion status (std_msgs/String)")
     p.add_argument("--status-key", default="companion/status")
     p.add_argument("--duration", type=float, default=0.0, help="seconds; 0 = until Ctrl-C (default)")
-    p.add_argument("--storage", default="mcap", choices=["mcap", "sqlite3"])
+    p.add_argument(
+        "--storage",
+        default="mcap",
+        choices=["mcap", "sqlite3"],
+        help="mcap (default) keeps all but the last ~1 MiB if the recorder is killed; sqlite3 keeps nothing then",
+    )
     add_zenoh_args(p, connect=["tcp/127.0.0.1:7447"])
     p.set_defaults(func=cmd_record)
 
@@ -522,6 +712,42 @@ def add_replay_parser(sub: Any) -> None:
     )
     add_zenoh_args(p, listen=["tcp/127.0.0.1:7447"])
     p.set_defaults(func=cmd_replay)
+
+
+def add_recover_parser(sub: Any) -> None:
+    """The ``recover`` subcommand."""
+    p = sub.add_parser(
+        "recover",
+        help="rebuild a readable bag from one whose recorder was killed (no metadata.yaml / MCAP footer)",
+        description="Copy every readable message of a damaged rosbag2 (MCAP or sqlite3) into a new MCAP bag, "
+        "up to the first truncated or corrupt record; payloads and log times unchanged.",
+    )
+    p.add_argument("bag", help="the damaged bag directory, or its .mcap / .db3 file")
+    p.add_argument("--out", default=None, help="new bag directory (default: BAG-recovered)")
+    p.set_defaults(func=cmd_recover)
+
+
+def cmd_recover(a: Any) -> int:
+    """``python -m sim_bridge recover``: 0 when a bag was written (even if part of the source was lost), 2 when
+    there was nothing to read or the output exists."""
+    import json
+
+    try:
+        res = recover_bag(a.bag, a.out)
+    except (FileNotFoundError, WriterError) as exc:
+        print(f"recover: {exc}")
+        return 2
+    print(f"recovered into {res.out}")
+    for topic, n in res.messages.items():
+        print(f"  {topic:28s} {n:6d} messages")
+    if not res.messages:
+        print("  no message could be read")
+    for topic, why in res.skipped_topics.items():
+        print(f"  {topic:28s} not copied: {why}")
+    for where in res.stopped:
+        print(f"  read stopped in {where} (the rest of that file is lost)")
+    print(json.dumps({"recovered": res.as_dict()}), flush=True)
+    return 0
 
 
 def _print_record_summary(summary: dict[str, Any]) -> None:
@@ -598,6 +824,9 @@ def cmd_replay(a: Any) -> int:
         res = replayer.run()
     except (ReaderError, FileNotFoundError, ValueError) as exc:
         print(f"replay: cannot read {a.bag}: {exc}")
+        bag = Path(a.bag)
+        if bag.is_dir() and not (bag / "metadata.yaml").exists() and any(bag.glob("*.mcap")):
+            print(f"  its recorder did not close it (killed?): python -m sim_bridge recover {a.bag}")
         return 2
     finally:
         session.close()

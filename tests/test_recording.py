@@ -331,3 +331,137 @@ def test_cli_record_then_replay(endpoint, tmp_path, capsys) -> None:
     assert len(got) == n
     assert cli.main(["replay", str(tmp_path / "missing_bag"), "--zenoh-listen", endpoint]) == 2
     assert cli.main(["record", "--out", str(bag), "--duration", "0.1", "--zenoh-connect", endpoint]) == 2
+
+
+def test_a_killed_recorder_leaves_a_bag_that_recover_makes_readable(endpoint, tmp_path, capsys) -> None:
+    """``record`` in its own process, SIGKILLed mid-flight (power cut): no metadata.yaml, no MCAP footer.
+    ``replay`` refuses the bag and says what to do; ``recover`` copies every frame of the closed chunks,
+    byte for byte and in order, into a bag that replays."""
+    import signal
+    import subprocess
+    import sys
+
+    pub_session = open_session("peer", listen=[endpoint], multicast_scouting=False)
+    pub = FramePublisher(pub_session, KEY)
+    bag = tmp_path / "flight"
+    rec = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "sim_bridge",
+            "record",
+            "--out",
+            str(bag),
+            "--key",
+            KEY,
+            "--zenoh-connect",
+            endpoint,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        assert rec.stdout is not None and "recording" in rec.stdout.readline()
+        wait_matching(pub_session, KEY)
+        n = 16  # 400 x 400 mono frames, 160 kB each: two 1 MiB chunks are closed, the third is in memory
+        sent = []
+        for k in range(n):
+            stamp = now_us()
+            pub.put(pattern(k, 400), stamp)
+            sent.append(encode_image(pattern(k, 400), stamp))
+            time.sleep(0.02)
+        mcap = bag / f"{bag.name}.mcap"
+        assert wait_for(lambda: mcap.exists() and mcap.stat().st_size > 2 * 2**20, 10.0)
+        time.sleep(0.5)  # the writer thread takes the rest of the queue
+    finally:
+        rec.send_signal(signal.SIGKILL)
+        rec.wait(10)
+        pub.close()
+        pub_session.close()
+    assert not (bag / "metadata.yaml").exists()
+
+    assert cli.main(["replay", str(bag), "--wait-subscribers", "0", "--zenoh-listen", endpoint]) == 2
+    assert f"python -m sim_bridge recover {bag}" in capsys.readouterr().out
+
+    assert cli.main(["recover", str(bag)]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["recovered"]
+    out = Path(res["out"])
+    assert out == tmp_path / "flight-recovered"
+    got = res["messages"]["/uav/camera/nadir"]
+    assert 7 <= got < n, res  # at least the first closed chunk; never the one in memory
+    assert len(res["stopped"]) == 1 and "flight.mcap" in res["stopped"][0]
+    with Reader(out) as reader:
+        assert [c.msgtype for c in reader.connections] == [IMAGE_MSGTYPE]
+        raw = [bytes(r) for _, _, r in reader.messages()]
+    assert raw == sent[:got]
+    # the recovered bag replays; recovering again into the same place is refused
+    assert (
+        cli.main(["replay", str(out), "--rate", "50", "--wait-subscribers", "0", "--zenoh-listen", endpoint])
+        == 0
+    )
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["replayed"]["published"] == {
+        "/uav/camera/nadir": got
+    }
+    assert cli.main(["recover", str(bag)]) == 2
+
+
+def test_recover_keeps_a_type_of_the_recordings_own_and_reads_sqlite(tmp_path) -> None:
+    """A custom message type is rebuilt from the definition the MCAP carries; a sqlite3 bag that lost its
+    metadata.yaml is copied whole; nothing to read is a clear error."""
+    import subprocess
+    import sys
+
+    from sim_bridge.recording import _types_from_definition, recover_bag
+
+    # a writer killed after one closed chunk of a custom type (os._exit: no close, no footer)
+    code = f"""
+import os
+from rosbags.rosbag2 import Writer, StoragePlugin
+from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+ts = get_typestore(Stores.ROS2_HUMBLE)
+ts.register(get_types_from_msg("uint32 value", "probe_msgs/msg/Quality"))
+ts.register(get_types_from_msg("std_msgs/Header header\\nfloat64 range_m\\nprobe_msgs/Quality quality", "probe_msgs/msg/Range"))
+Range, Quality = ts.types["probe_msgs/msg/Range"], ts.types["probe_msgs/msg/Quality"]
+H, T = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+w = Writer({str(tmp_path / "custom")!r}, version=8, storage_plugin=StoragePlugin.MCAP)
+w.open()
+c = w.add_connection("/probe/range", "probe_msgs/msg/Range", typestore=ts)
+for i in range(60000):
+    w.write(c, 10**18 + i, bytes(ts.serialize_cdr(Range(header=H(stamp=T(sec=i, nanosec=0), frame_id="alt"), range_m=i * 0.5, quality=Quality(value=i % 7)), "probe_msgs/msg/Range")))
+os._exit(0)
+"""
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+    res = recover_bag(tmp_path / "custom")
+    n = res.messages["/probe/range"]
+    assert 0 < n < 60000 and res.skipped_topics == {}
+    with Reader(res.out) as reader:
+        msgs = list(reader.messages())
+        conn = reader.connections[0]
+        assert conn.msgtype == "probe_msgs/msg/Range"
+    store = get_typestore(Stores.ROS2_HUMBLE)  # a reader that knows the types from the bag alone
+    store.register(_types_from_definition(conn.msgdef.data, conn.msgtype, store))
+    last = store.deserialize_cdr(bytes(msgs[-1][2]), conn.msgtype)
+    assert len(msgs) == n and msgs[-1][1] == 10**18 + n - 1
+    assert (
+        last.range_m == (n - 1) * 0.5 and last.quality.value == (n - 1) % 7 and last.header.stamp.sec == n - 1
+    )
+
+    # sqlite3, closed properly, then its metadata.yaml lost
+    with Writer(tmp_path / "db", version=8, storage_plugin=StoragePlugin.SQLITE3) as w:
+        conn = w.add_connection("/uav/camera/nadir", IMAGE_MSGTYPE, typestore=TS)
+        for k in range(5):
+            w.write(conn, 1000 + k, encode_image(pattern(k), 1000 + k))
+    (tmp_path / "db" / "metadata.yaml").unlink()
+    res = recover_bag(tmp_path / "db", tmp_path / "db-fixed")
+    assert res.messages == {"/uav/camera/nadir": 5} and res.stopped == []
+    with Reader(tmp_path / "db-fixed") as reader:
+        assert [bytes(r) for _, _, r in reader.messages()] == [
+            encode_image(pattern(k), 1000 + k) for k in range(5)
+        ]
+
+    with pytest.raises(FileNotFoundError, match="no such bag"):
+        recover_bag(tmp_path / "db-fixed-not-there")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="no .mcap or .db3"):
+        recover_bag(tmp_path / "empty")
