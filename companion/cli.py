@@ -172,6 +172,12 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
 
     stop = stop or threading.Event()
     estimator = build_estimator(cfg)
+    estimate_log = None
+    if cfg.daemon.estimates_log:
+        from companion.io.estimate_log import EstimateLog
+
+        estimate_log = EstimateLog(cfg.daemon.estimates_log)  # OSError: a wrong path fails here, at start
+        log.info("recording estimates in %s and %s", estimate_log.csv_path, estimate_log.tum_path)
     tol_us = int(cfg.estimator.ekf.pair_tolerance_ms * 1000)
     handoff = FrameHandoff(tuple(estimator.cameras), pair_tolerance_us=tol_us)
     offset = cfg.cameras[estimator_cameras(cfg)[0]].position_in_body_m
@@ -212,6 +218,7 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
         status_period_s=d.status_period_s,
         publish_status=publish_status,
         frame_counters=frame_counters,
+        estimate_log=estimate_log,
     )
 
     def on_signal(signum: int, _frame: object) -> None:

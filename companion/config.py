@@ -154,6 +154,9 @@ class DaemonConfig(_Strict):
     max_frame_age_ms: Annotated[float, Field(gt=0)] = 500.0
     max_future_ms: Annotated[float, Field(gt=0)] = 200.0
     log_level: Literal["debug", "info", "warning", "error"] = "info"
+    # record every estimate: "<path>.csv" (all, with what became of each) and "<path>.tum" (the ones sent,
+    # for evo); "{time}" in the path is the start time; "" = off (``companion.io.estimate_log``)
+    estimates_log: str = ""
 
 
 class CompanionConfig(_Strict):

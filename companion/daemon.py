@@ -84,6 +84,16 @@ class AutopilotLink(Protocol):
     def stop(self) -> None: ...
 
 
+class EstimateSink(Protocol):
+    """Where the daemon records each estimate and its outcome (``companion.io.estimate_log.EstimateLog``)."""
+
+    def write(self, est: PoseEstimate, outcome: str) -> None: ...
+
+    def status(self) -> dict[str, Any]: ...
+
+    def close(self) -> None: ...
+
+
 @dataclass
 class DaemonCounters:
     estimates: int = 0
@@ -129,6 +139,7 @@ class Daemon:
         publish_status: Callable[[str], None] | None = None,
         frame_counters: Callable[[], dict[str, Any]] | None = None,
         inbox_size: int = 4096,
+        estimate_log: EstimateSink | None = None,
     ) -> None:
         self.estimator = estimator
         self.handoff = handoff
@@ -149,6 +160,7 @@ class Daemon:
         self._last_status = ""
         self._rate_prev: tuple[float, int, int] | None = None
         self.last_estimate: PoseEstimate | None = None
+        self.estimate_log = estimate_log
 
     # -- inputs from the link thread -----------------------------------------------------------------
     def _enqueue(self, sample: Sample) -> None:
@@ -191,6 +203,8 @@ class Daemon:
             self.estimator.close()
         except Exception:  # noqa: BLE001 - shutting down: log, never raise
             log.exception("estimator close failed")
+        if self.estimate_log is not None:
+            self.estimate_log.close()
         st = self.status()
         log.info("companion stopped: %s", self.status_line(st))
         log.info("totals: sent %d, not sent %s, estimator %s", st["sent"], st["not_sent"], st["estimator"])
@@ -209,7 +223,7 @@ class Daemon:
             self.process(frames)
 
     def process(self, frames: dict[str, Frame]) -> PoseEstimate | None:
-        """Run the estimator on one frame set and send the result. Never raises."""
+        """Run the estimator on one frame set, send the result, record it in the estimates log. Never raises."""
         try:
             est = self.estimator.on_frames(frames)
         except Exception:  # noqa: BLE001 - bad input must not kill the daemon: count, log, go on
@@ -222,27 +236,32 @@ class Daemon:
         self.counters.estimates += 1
         self.last_estimate = est
         self._last_quality = est.quality
+        outcome = self._send(est, frames)
+        if outcome == "sent":
+            self.counters.sent += 1
+        else:
+            self.counters.count_not_sent(outcome)
+        if self.estimate_log is not None:
+            self.estimate_log.write(est, outcome)
+        return est
+
+    def _send(self, est: PoseEstimate, frames: dict[str, Frame]) -> str:
+        """Send ``est`` if it may go: "sent", or the reason it did not."""
         if not est.is_sendable():
-            self.counters.count_not_sent(
-                f"status_{est.status.value}" if est.status.value != "ok" else "not_finite"
-            )
-            return est
+            return f"status_{est.status.value}" if est.status.value != "ok" else "not_finite"
         if (
             self._last_sent_stamp_us is not None
             and est.stamp_us - self._last_sent_stamp_us < self.min_interval_us
         ):
             # ArduPilot silently drops external-nav samples faster than its minimum interval: cap here
-            self.counters.count_not_sent("rate_cap")
-            return est
+            return "rate_cap"
         reason = self.link.send_estimate(est)
-        if reason is None:
-            self.counters.sent += 1
-            self._last_sent_stamp_us = est.stamp_us
-            capture_us = min(f.stamp_us for f in frames.values())
-            self.latency.add((now_us() - capture_us) / 1000.0)
-        else:
-            self.counters.count_not_sent(reason)
-        return est
+        if reason is not None:
+            return reason
+        self._last_sent_stamp_us = est.stamp_us
+        capture_us = min(f.stamp_us for f in frames.values())
+        self.latency.add((now_us() - capture_us) / 1000.0)
+        return "sent"
 
     # -- health ------------------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -275,6 +294,7 @@ class Daemon:
             "position_ned_m": None if est is None else [round(float(v), 2) for v in est.p_body_in_world_m],
             "frames": self.frame_counters(),
             "link": self.link.status(),
+            "estimates_log": None if self.estimate_log is None else self.estimate_log.status(),
             "estimator": {
                 k: dict(v)
                 for k in ("counters", "no_fix_reasons")

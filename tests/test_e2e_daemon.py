@@ -125,6 +125,7 @@ def companion_config(
     mavlink: str,
     zenoh_listen: list[str],
     estimator: str = "georef",
+    estimates_log: str = "",
 ):
     cfg = SimConfig(duration_s=60.0)
     s0 = make_trajectory(cfg, ground_m).state_at(0.0)
@@ -138,6 +139,7 @@ def companion_config(
         "estimator.initial_position_ned_m": [float(v) for v in s0.p_world],
         "estimator.initial_yaw_deg": yaw0,
         "daemon.log_level": "warning",
+        "daemon.estimates_log": estimates_log,
     }
     return apply_overrides(
         load_config(ROOT / "configs/sim_mars.toml"), [f"{k}={json.dumps(v)}" for k, v in sets.items()], "test"
@@ -226,7 +228,13 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
     endpoints = [f"tcp/127.0.0.1:{zsim}", f"tcp/127.0.0.1:{zbad}"]
     stop = threading.Event()
     cfg = companion_config(
-        dem, ground, endpoints, f"udpout:127.0.0.1:{mport}", [f"tcp/127.0.0.1:{zcomp}"], case.estimator
+        dem,
+        ground,
+        endpoints,
+        f"udpout:127.0.0.1:{mport}",
+        [f"tcp/127.0.0.1:{zcomp}"],
+        case.estimator,
+        estimates_log=str(tmp_path / "companion" / "estimates-{time}"),
     )
     daemon = threading.Thread(target=cmd_run, args=(cfg, stop), daemon=True)
     status: StatusWatch | None = None
@@ -271,6 +279,18 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
     # the daemon read the simulated ArduPilot's external-vision parameters and found it set up for us
     assert st["link"]["autopilot"] == "ardupilot" and st["link"]["params_check"] is not None, st["link"]
     assert st["link"]["params_check"]["problems"] == {}, st["link"]["params_check"]
+    # the companion's own log: every estimate with its outcome (CSV), the sent ones as TUM; everything the
+    # autopilot received is in it, to float32 precision (MAVLink's)
+    (csv_path,) = (tmp_path / "companion").glob("estimates-*.csv")
+    rows = csv_path.read_text().splitlines()
+    assert rows[0].startswith("stamp_s,x_m,y_m,z_m,roll_rad") and len(rows) > 1
+    outcomes = [r.split(",")[15] for r in rows[1:]]
+    ours = np.loadtxt(csv_path.with_suffix(".tum"), ndmin=2)
+    assert len(ours) == outcomes.count("sent") and st["estimates_log"]["errors"] == 0
+    received = np.loadtxt(tmp_path / "estimate.tum", ndmin=2)
+    assert 0 < len(received) <= len(ours)
+    gap = np.min(np.linalg.norm(received[:, None, 1:4] - ours[None, :, 1:4], axis=2), axis=1)
+    assert np.max(gap) < 1e-3, f"{np.sum(gap >= 1e-3)} estimates the autopilot got are not in the log"
     if case.estimator == "terrain_lba":
         # key frames went through the back-end: geo-fixes against the DEM, the adjustment, results applied
         c = st["estimator"]["counters"]
