@@ -547,25 +547,6 @@ def _sqlite_messages(path: Path, res: RecoveryResult) -> Iterator[_RawMessage]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _types_from_definition(msgdef: str, msgtype: str, known: Any) -> dict[str, Any]:
-    """The types a ROS 2 message definition as stored in a bag describes: the message's own fields, then each
-    dependency after a line of 80 "=" and "MSG: pkg/Type" (the rosbag2 / MCAP "ros2msg" layout). Types the
-    store ``known`` already has are left out. Raises on a definition rosbags cannot parse."""
-    from rosbags.typesys import get_types_from_msg
-
-    parts = msgdef.split("=" * 80 + "\n")
-    types = dict(get_types_from_msg(parts[0], msgtype))
-    for part in parts[1:]:
-        head, _, body = part.partition("\n")
-        name = head.removeprefix("MSG:").strip()
-        if "/msg/" not in name:
-            pkg, _, short = name.partition("/")
-            name = f"{pkg}/msg/{short}"
-        if name not in known.types:
-            types.update(get_types_from_msg(body, name))
-    return types
-
-
 def _recovery_sources(src: Path) -> list[Path]:
     if src.is_file():
         return [src]
@@ -590,6 +571,8 @@ def recover_bag(src: str | Path, out: str | Path | None = None) -> RecoveryResul
     type store nor described by a definition the file carries is left out, its topic listed in
     ``skipped_topics``. Raises FileNotFoundError when there is nothing to read and WriterError when ``out``
     exists."""
+    from rosbags.typesys import get_types_from_msg
+
     src = Path(src)
     files = _recovery_sources(src)
     base = src if src.is_dir() else src.parent / src.stem
@@ -609,7 +592,9 @@ def recover_bag(src: str | Path, out: str | Path | None = None) -> RecoveryResul
                         continue
                     if msgtype not in typestore.types:
                         try:  # a type of the recording's own: register it from the definition in the file
-                            typestore.register(_types_from_definition(msgdef, msgtype, typestore))
+                            # (rosbags parses the "ros2msg" layout with its "MSG:" dependencies itself)
+                            found = get_types_from_msg(msgdef, msgtype)
+                            typestore.register({k: v for k, v in found.items() if k not in typestore.types})
                         except Exception as exc:  # noqa: BLE001 - any parse failure means "unknown type"
                             res.skipped_topics[topic] = f"{msgtype or 'no type'}: definition unknown ({exc})"
                             continue

@@ -412,7 +412,9 @@ def test_recover_keeps_a_type_of_the_recordings_own_and_reads_sqlite(tmp_path) -
     import subprocess
     import sys
 
-    from sim_bridge.recording import _types_from_definition, recover_bag
+    from rosbags.typesys import get_types_from_msg
+
+    from sim_bridge.recording import recover_bag
 
     # a writer killed after one closed chunk of a custom type (os._exit: no close, no footer)
     code = f"""
@@ -440,7 +442,8 @@ os._exit(0)
         conn = reader.connections[0]
         assert conn.msgtype == "probe_msgs/msg/Range"
     store = get_typestore(Stores.ROS2_HUMBLE)  # a reader that knows the types from the bag alone
-    store.register(_types_from_definition(conn.msgdef.data, conn.msgtype, store))
+    found = get_types_from_msg(conn.msgdef.data, conn.msgtype)
+    store.register({k: v for k, v in found.items() if k not in store.types})
     last = store.deserialize_cdr(bytes(msgs[-1][2]), conn.msgtype)
     assert len(msgs) == n and msgs[-1][1] == 10**18 + n - 1
     assert (
