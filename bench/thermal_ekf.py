@@ -321,7 +321,7 @@ def daemon_path_rate(n_pairs: int = 60, detect_scale: float | None = None) -> di
     passes = []
     for _ in range(3):  # best of three passes: the other jobs on this machine only ever slow us down
         est = VisThermalEkfEstimator(
-            BENCH_OPTIONS if detect_scale is None else replace(BENCH_OPTIONS, detect_scale=detect_scale),
+            bench_options(detect_scale),
             {"visible": intr, "thermal": intr},
             {"visible": R_BODY_CAM_NADIR, "thermal": R_BODY_CAM_NADIR},
             st0.p_world,
