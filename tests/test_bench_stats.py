@@ -1,0 +1,38 @@
+"""The EKF benchmark's "dual worse than the better single camera beyond noise" statistics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import ttest_rel
+
+from bench.thermal_ekf import holm_adjusted, paired_worse
+
+
+def test_paired_worse_is_scipys_one_sided_paired_t() -> None:
+    rng = np.random.default_rng(3)
+    b = rng.normal(0.2, 0.1, 30)
+    a = b + rng.normal(0.03, 0.05, 30)
+    got = paired_worse(a, b)
+    ref = ttest_rel(a, b, alternative="greater")
+    assert got["t"] == pytest.approx(ref.statistic, rel=1e-9)
+    assert got["p"] == pytest.approx(ref.pvalue, rel=1e-9)
+    assert got["diff"] == pytest.approx(np.mean(a - b))
+    # a NaN trial (a run that produced no estimate) is left out of the pair, not propagated
+    a2 = np.append(a, np.nan)
+    b2 = np.append(b, 0.1)
+    assert paired_worse(a2, b2)["t"] == pytest.approx(got["t"])
+
+
+def test_holm_adjusted_known_values() -> None:
+    # Holm (1979) step-down by hand: sorted p 0.005, 0.01, 0.03, 0.04 times 4, 3, 2, 1 -> 0.02, 0.03,
+    # 0.06, 0.04 -> monotone 0.02, 0.03, 0.06, 0.06; returned in the input order
+    assert holm_adjusted([0.01, 0.04, 0.03, 0.005]) == pytest.approx([0.03, 0.06, 0.06, 0.02])
+    assert holm_adjusted([0.5, 0.9]) == pytest.approx([1.0, 1.0])  # capped at 1
+    assert holm_adjusted([]) == []
+
+
+def test_one_significant_trajectory_of_ten_survives_holm_only_when_strong() -> None:
+    p = [0.5] * 9
+    assert holm_adjusted(p + [0.004])[-1] == pytest.approx(0.04)  # 0.004 x 10: still below 0.05
+    assert holm_adjusted(p + [0.0064])[-1] > 0.05  # a t = 2.65 over 30 trials alone is not
