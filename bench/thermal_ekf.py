@@ -30,7 +30,7 @@ its standard error, t and one-sided p; the average lists the trajectories where 
 and those where it is worse at a Holm-Bonferroni adjusted p < 0.05 over the ten trajectories.
 mean_error_m (per run): the mean position-error norm over the flight; dual_vs_best_single_mean_error: the
 same paired comparison on it (E is a slope: a mode better early in the flight and equal at its end gets
-the larger E).
+the larger E). error_by_fifth_m: the mean error over each fifth of the flight's frames.
 pairs_per_s: frame pairs per second through the dual estimator's daemon path (``on_frames``: SIFT on both
 images in two threads, then the filter step), measured after the trials on 60 pre-rendered pairs as
 1 / median time per pair, best of three passes (the mean-based rate and every pass are given beside it); the
@@ -245,6 +245,10 @@ def run_trial(
             "E_percent": slope_percent(dist[idx], err),
             "final_error_m": float(err[-1]) if len(err) else float("nan"),
             "mean_error_m": float(np.mean(err)) if len(err) else float("nan"),
+            # the mean error over each fifth of the flight's frames: the shape behind E (a slope)
+            "error_by_fifth_m": [
+                float(np.mean(x)) if len(x) else float("nan") for x in np.array_split(err, 5)
+            ],
             "filter_s_per_frame": res.seconds / max(len(frames), 1),
             "mean_matched": float(np.mean(res.matched)) if len(res.matched) else 0.0,
             "lost_frames": int(sum(s == "lost" for s in res.status)),
@@ -280,6 +284,9 @@ def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]
                 "final_error_m": float(np.mean([r[c]["final_error_m"] for r in rs])),
                 # runs logged before it was recorded have none (NaN)
                 "mean_error_m": float(np.nanmean([r[c].get("mean_error_m", np.nan) for r in rs])),
+                "error_by_fifth_m": np.nanmean(
+                    [r[c].get("error_by_fifth_m", [np.nan] * 5) for r in rs], axis=0
+                ).tolist(),
                 "per_trial": E[c],
             }
         for a, b, ca, cb in PAIRS:
@@ -508,6 +515,10 @@ def main(argv: list[str] | None = None) -> int:
     print(table(["traj", "vis m", "tir m", "dual m", "best single", "dual - best m", "se", "t"], rows6,
                 "Mean position error over the flight (m), and dual against the better single camera on it; "
                 "worse at t > 2: " + (", ".join(avg["dual_worse_than_best_single_mean_error"]) or "none")))  # fmt: skip
+    rows7 = [[k, c] + per[k][c]["error_by_fifth_m"] for k in per for c in ("visible", "thermal", "dual")]
+    print()
+    print(table(["traj", "mode", "1st fifth m", "2nd", "3rd", "4th", "5th"], rows7,
+                "Mean position error over each fifth of the flight (m, mean over trials)"))  # fmt: skip
     rows3 = [[k, per[k]["sampling"]["kde"]["E_percent"], per[k]["sampling"]["uniform"]["E_percent"],
               per[k]["sampling"]["I_uniform_vs_kde"], per[k]["sampling"]["d_uniform_vs_kde"]] for k in per]  # fmt: skip
     rows3.append(
