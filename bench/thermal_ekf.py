@@ -145,7 +145,9 @@ def paired_worse(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
 
 def holm_adjusted(p: list[float]) -> list[float]:
     """Holm-Bonferroni adjusted p-values of a family of tests (step-down: the k-th smallest p times m-k+1,
-    kept monotone). Five lines; statsmodels' multipletests does it but is not worth a dependency here."""
+    kept monotone). SciPy has none (its false_discovery_control is Benjamini-Hochberg, which bounds the
+    false discovery rate, not the chance of any false alarm); statsmodels' multipletests is not worth a
+    dependency for six lines."""
     m = len(p)
     if m == 0:
         return []
