@@ -163,3 +163,68 @@ def test_key_frame_height_averages_the_altimeter_samples_since_the_previous_key_
     finally:
         est.close()
     assert agl is not None and abs(agl - 100.0) < 0.5 * float(np.mean(errors_single)), (agl, errors_single)
+
+
+def test_back_end_worker_killed_in_flight_is_replaced_and_the_frames_go_on(flight) -> None:
+    # the OOM killer (or a crash in a native library) takes the back-end worker while it holds a job: the
+    # frames must not raise or stall, the loss is counted, and a new worker takes over the adjustments.
+    # Frames are fed at the camera rate, as the daemon gets them.
+    import os
+    import signal
+    import time
+
+    scene, dem_est, frames, yaw0 = flight
+    est = TerrainLbaEstimator(
+        replace(TerrainLbaOptions(), backend_apply="when_ready"),
+        INTR,
+        R_BODY_CAM_NADIR,
+        dem_est,
+        scene.sun,
+        frames[0][3],
+        yaw0,
+    )
+    killed_at = None
+    applied_at_kill = 0
+    worst_s = 0.0
+    sendable_after = 0
+    try:
+        for i, (att, alt, frame, _) in enumerate(frames):
+            t0 = time.monotonic()
+            if killed_at is None and est.counters["backend_applied"] >= 1 and est._in_flight is not None:
+                os.kill(est._proc.pid, signal.SIGKILL)
+                est._proc.join(timeout=5.0)
+                killed_at, applied_at_kill = i, est.counters["backend_applied"]
+            est.on_attitude(att)
+            est.on_altimeter(alt)
+            tc = time.monotonic()
+            pe = est.on_frames({"nadir": frame})
+            worst_s = max(worst_s, time.monotonic() - tc)
+            if killed_at is not None and pe is not None and pe.is_sendable():
+                sendable_after += 1
+            time.sleep(max(0.0, 1.0 / RATE_HZ - (time.monotonic() - t0)))
+        counters = est.counters
+    finally:
+        est.close()
+    assert killed_at is not None, "no job was ever in flight"
+    assert counters["backend_restarts"] == 1
+    assert sendable_after == len(frames) - killed_at  # every frame after the kill still has an estimate
+    assert counters["backend_applied"] > applied_at_kill  # the new worker's results are applied
+    assert counters["lba_runs"] >= counters["backend_applied"]  # totals carry over the dead worker's
+    assert worst_s < 0.5  # the restart happens off the frames (a start blocks its caller ~1 s)
+
+
+def test_back_end_worker_that_cannot_start_fails_at_once_with_its_exit_code() -> None:
+    # a worker that dies while building its back-end (here: the matcher's reference map, from an option
+    # only the worker uses, a zero local-relief scale that OpenCV's blur rejects) must not leave the caller
+    # waiting for the start-up timeout
+    import time
+
+    from companion.georef.dem import Dem
+
+    dem = Dem(np.zeros((50, 50), np.float32), 25.0, -25.0, 1.0)
+    opt = TerrainLbaOptions(backend_start_timeout_s=100.0)
+    opt = replace(opt, georef=replace(opt.georef, relief_scale_m=0.0))
+    t0 = time.monotonic()
+    with pytest.raises(RuntimeError, match="exit code 1"):
+        TerrainLbaEstimator(opt, INTR, R_BODY_CAM_NADIR, dem, Sun.from_degrees(10, 0, 60), np.zeros(3))
+    assert time.monotonic() - t0 < 60.0

@@ -15,12 +15,21 @@ back-end inline at the key frame and applies it with the same fixed delay (same 
 
 The autopilot's attitude gives the initial rotation and the gravity prior of the adjustment; the altimeter
 gives the monocular scale at initialisation and the height above ground of each geo-fix (eq. 18).
+
+The worker is supervised: if it dies (killed by the OOM killer, a crash inside a native library) or stops
+answering (a "fixed_delay" result more than ``backend_reply_timeout_s`` late), it is counted
+(``backend_restarts``), a new one is started without blocking the frames, and the estimates go on from the
+VO alone meanwhile (their covariance grows with the distance flown); the new back-end aligns itself to the
+map again from the next geo-fixes.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing as mp
+import threading
+import time
 from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -46,6 +55,10 @@ from companion.types import (
 )
 from companion.vo.odometry import VisualOdometry, VoOptions
 
+log = logging.getLogger(__name__)
+
+RESTART_BACKOFF_S = 5.0  # a replacement worker that failed to start is retried after this
+
 
 @dataclass(frozen=True)
 class TerrainLbaOptions:
@@ -58,6 +71,7 @@ class TerrainLbaOptions:
     backend_apply: str = "when_ready"  # "when_ready" (lowest latency) or "fixed_delay" (deterministic)
     backend_delay_frames: int = 10  # "fixed_delay" / synchronous: frames between a key frame and its result
     backend_start_timeout_s: float = 120.0  # the worker must be up within this (imports gtsam, builds maps)
+    backend_reply_timeout_s: float = 30.0  # "fixed_delay": a result this late after it is due = hung worker
     attitude_max_age_us: int = 100_000  # attitude further than this from a frame's stamp is not used
     altimeter_max_age_us: int = 200_000
     initial_sigma_m: float = 1.0  # 1-sigma of the initial position (covariance before any adjustment)
@@ -151,19 +165,17 @@ class TerrainLbaEstimator:
         self._backend: Backend | None = None
         self._proc: Any = None
         self._conn: Any = None
+        self._geo_args = geo_args
+        self._worker_ready = False
+        self._worker_started = 0.0
+        self._dead_totals: dict[str, int] = {}  # back-end counters of the workers that were replaced
+        self._starter: threading.Thread | None = None  # starts a replacement worker off the frames
+        self._closing = threading.Event()
         if synchronous_backend:
             self._backend = _make_backend(self.opt.backend, geo_args)
         else:
-            ctx = mp.get_context("spawn")
-            self._conn, child = ctx.Pipe()
-            self._proc = ctx.Process(
-                target=_worker_main, args=(child, self.opt.backend, geo_args), daemon=True, name="terrain_lba"
-            )
-            self._proc.start()
-            child.close()
-            if not self._conn.poll(self.opt.backend_start_timeout_s) or self._conn.recv() != "ready":
-                self.close()
-                raise RuntimeError("terrain_lba back-end worker did not start")
+            self._start_worker()
+            self._wait_ready()
         self._attitude = SampleHistory()
         self._range = SampleHistory()
         # altimeter samples not yet turned into altitude offsets, and the offsets since the last key frame
@@ -192,6 +204,7 @@ class TerrainLbaEstimator:
             "backend_applied": 0,  # results written back into the map
             "backend_stale": 0,  # results for a map that was reset meanwhile (dropped)
             "backend_errors": 0,
+            "backend_restarts": 0,  # worker processes found dead or hung and replaced
         }
 
     # -- inputs from the autopilot ------------------------------------------------------------------
@@ -235,6 +248,10 @@ class TerrainLbaEstimator:
         return None if not np.isfinite(ground) else -float(p_body[2]) + offset - ground
 
     def close(self) -> None:
+        self._closing.set()
+        if self._starter is not None:
+            self._starter.join(timeout=10.0)
+            self._starter = None
         if self._proc is not None:
             with contextlib.suppress(OSError, ValueError):  # the pipe may be gone: the worker then exits
                 self._conn.send(None)
@@ -244,10 +261,102 @@ class TerrainLbaEstimator:
                 self._proc.join(timeout=5.0)
             self._proc = None
 
+    # -- the worker process -------------------------------------------------------------------------
+    def _start_worker(self) -> None:
+        """Start a worker process; it says "ready" once it has built its back-end. Sets ``_proc`` and
+        ``_conn`` last (a restart runs this in a thread: the frames look at them only after it ended)."""
+        ctx = mp.get_context("spawn")
+        conn, child = ctx.Pipe()
+        proc = ctx.Process(
+            target=_worker_main,
+            args=(child, self.opt.backend, self._geo_args),
+            daemon=True,
+            name="terrain_lba",
+        )
+        proc.start()  # blocks until the new interpreter has read its arguments (the DEM): ~1 s
+        child.close()
+        self._worker_ready = False
+        self._worker_started = time.monotonic()
+        self._conn, self._proc = conn, proc
+
+    def _wait_ready(self) -> None:
+        """Block until the worker is ready (start-up): fails at once if it dies, or after the timeout."""
+        deadline = self._worker_started + self.opt.backend_start_timeout_s
+        while not self._poll_ready():
+            if not self._proc.is_alive():
+                code = self._proc.exitcode
+                self.close()
+                raise RuntimeError(f"terrain_lba back-end worker exited during start-up (exit code {code})")
+            if time.monotonic() > deadline:
+                self.close()
+                raise RuntimeError(
+                    f"terrain_lba back-end worker not ready after {self.opt.backend_start_timeout_s:g} s"
+                )
+            time.sleep(0.05)
+
+    def _poll_ready(self) -> bool:
+        """Non-blocking: has the worker said "ready"? (A worker that died before is handled by the caller.)"""
+        if self._worker_ready:
+            return True
+        try:
+            if self._conn.poll() and self._conn.recv() == "ready":
+                self._worker_ready = True
+        except (EOFError, OSError):
+            return False
+        return self._worker_ready
+
+    def _replace_worker(self, why: str, delay_s: float = 0.0) -> None:
+        """The worker died or hung: count it, drop its job, start another one after ``delay_s`` (a worker
+        that cannot start is not retried at the frame rate), not waiting for it."""
+        self._fe["backend_restarts"] += 1
+        log.warning("terrain_lba back-end worker %s: restarting it (VO only until it is back)", why)
+        self._dead_totals = self.backend_counters()  # a new dict: the status thread may be reading the old
+        self.last_result = None
+        self._in_flight = None
+        proc, conn = self._proc, self._conn
+        self._proc = self._conn = None
+        self._worker_ready = False
+        if conn is not None:
+            with contextlib.suppress(OSError, ValueError):
+                conn.close()
+        if proc is not None:
+            if proc.is_alive():
+                proc.kill()
+            proc.join(timeout=1.0)
+
+        # starting a process blocks its caller for about a second (see _start_worker): not on the frames
+        def start() -> None:
+            if not self._closing.wait(delay_s):
+                self._start_worker()
+
+        self._starter = threading.Thread(target=start, name="terrain_lba-restart", daemon=True)
+        self._starter.start()
+
+    def _check_restarting_worker(self) -> bool:
+        """While a replacement worker starts: True once it is ready; a replacement that could not be
+        started, dies or misses the start-up timeout is replaced again."""
+        if self._starter is not None:
+            if self._starter.is_alive():
+                return False
+            self._starter = None
+            if self._proc is None:  # the start itself failed (its thread logged why): try again
+                self._replace_worker("could not be started", RESTART_BACKOFF_S)
+                return False
+        if self._poll_ready():
+            return True
+        if not self._proc.is_alive():
+            code = self._proc.exitcode
+            self._replace_worker(f"exited during start-up (exit code {code})", RESTART_BACKOFF_S)
+        elif time.monotonic() - self._worker_started > self.opt.backend_start_timeout_s:
+            self._replace_worker(f"not ready after {self.opt.backend_start_timeout_s:g} s")
+        return False
+
     # -- back-end -----------------------------------------------------------------------------------
     def _submit(self) -> None:
         if self._wanted is None or self._in_flight is not None or self.vo.state != "tracking":
             return
+        if self._backend is None and not self._check_restarting_worker():
+            return  # a replacement worker is starting: the key frame waits (a newer one replaces it)
         k = self._wanted
         self._wanted = None
         if k not in self.vo.kfs:
@@ -281,7 +390,10 @@ class TerrainLbaEstimator:
         if self._backend is not None:
             self._sync_result = self._backend.process(job)
         else:
-            self._conn.send(job)
+            try:
+                self._conn.send(job)
+            except (OSError, ValueError) as e:  # BrokenPipeError: the worker is gone
+                self._replace_worker(f"lost ({type(e).__name__}: {e})")
 
     def _collect(self) -> None:
         """Apply the in-flight result if it is due (fixed delay: wait for it) or ready (when_ready)."""
@@ -294,14 +406,20 @@ class TerrainLbaEstimator:
             res = self._sync_result
             self._sync_result = None
         else:
-            if self.fixed_delay:
-                if self.frame_index < due:
+            if self.fixed_delay and self.frame_index < due:
+                return
+            try:
+                # fixed delay: wait for the result (deterministic output); when ready: only if it is there
+                wait_s = self.opt.backend_reply_timeout_s if self.fixed_delay else 0.0
+                if not self._conn.poll(wait_s):
+                    if self.fixed_delay or not self._proc.is_alive():
+                        self._replace_worker("did not answer" if self._proc.is_alive() else "died")
                     return
                 res = self._conn.recv()
-            else:
-                if not self._conn.poll():
-                    return
-                res = self._conn.recv()
+            except (EOFError, OSError) as e:  # the pipe closed: the worker died
+                code = self._proc.exitcode
+                self._replace_worker(f"died (exit code {code}, {type(e).__name__})")
+                return
         self._in_flight = None
         if isinstance(res, str) or res is None:
             self._fe["backend_errors"] += 1
@@ -455,5 +573,10 @@ class TerrainLbaEstimator:
         return {k[len(p) :]: v for k, v in self.backend_counters().items() if k.startswith(p)}
 
     def backend_counters(self) -> dict:
-        """Running totals of the back-end (key frames, fixes accepted / rejected / failed, alignments)."""
-        return {} if self.last_result is None else dict(self.last_result.counters)
+        """Running totals of the back-end (key frames, fixes accepted / rejected / failed, alignments), over
+        every worker this estimator has had."""
+        out = dict(self._dead_totals)
+        if self.last_result is not None:
+            for k, v in self.last_result.counters.items():
+                out[k] = out.get(k, 0) + v
+        return out
