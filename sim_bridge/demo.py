@@ -109,6 +109,7 @@ def estimator_line(status: dict[str, Any] | None) -> str:
             f"geo-fixes accepted {c['fix_accepted']} / rejected by the gate {c['fix_rejected']} / "
             f"failed {c['fix_failed']} of {c['fix_attempts']}, alignments {c['alignments']}, "
             f"re-initialisations {c['reinit']}"
+            + (f", back-end worker restarts {c['backend_restarts']}" if c.get("backend_restarts") else "")
         )
     return ", ".join(f"{k} {v}" for k, v in c.items())
 
