@@ -124,7 +124,9 @@ class Simulation:
         self.render_s = 0.0
 
     def estimator(self, options: TerrainLbaOptions) -> TerrainLbaEstimator:
-        """The estimator as the daemon builds it: degraded DEM, presumed sun, known start, compass yaw."""
+        """The estimator as the daemon builds it: degraded DEM, known start, compass yaw, and the scene's
+        sun (a vehicle knows the sun's direction from the time and its position; paper 1's presumed sun is
+        the geo-referencing benchmark's condition, not this one's)."""
         return TerrainLbaEstimator(
             options,
             self.intr,
