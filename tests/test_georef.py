@@ -253,3 +253,50 @@ def test_low_overlap_when_looking_at_the_horizon(world: World, geo_fine: GeoRefe
 )
 def test_bad_input(geo_fine: GeoReferencer, image, R, p) -> None:
     _assert_no_fix(geo_fine.locate(image, R, p, AGL_M), G.REASON_BAD_INPUT)
+
+
+def test_joint_shift_is_not_pulled_by_a_height_like_term() -> None:
+    # A periodic terrain; the frame is its shading plus a reflectance tied to the relief (darker high ground),
+    # shifted by a known sub-pixel amount. Correlating against the shading alone puts the peak off along the
+    # sun; minimising the fitted residual over the shift (the even term is one of the bases) finds the shift.
+    from companion.georef import illumination, phase
+    from companion.georef.shading import slopes
+
+    n = 128
+    rng = np.random.default_rng(5)
+    fy = np.fft.fftfreq(n)[:, None]
+    fx = np.fft.fftfreq(n)[None, :]
+    f = np.hypot(fx, fy)
+    spec = np.fft.fft2(rng.standard_normal((n, n))) * np.exp(-((f / 0.04) ** 2))
+    h = np.fft.ifft2(spec).real
+    h = (15.0 * h / h.std()).astype(np.float32)  # metres, 1 m cells, periodic
+    sun = Sun.from_degrees(10.0, 0.0, 45.0)
+
+    def periodic(fn, img):  # evaluate on a 3x3 tiling so the derivatives wrap, keep the middle
+        big = fn(np.tile(img, (3, 3)))
+        return big[n : 2 * n, n : 2 * n]
+
+    shading = periodic(lambda x: lambert_shading(x, 1.0, sun), h)
+    de = periodic(lambda x: slopes(x, 1.0)[0], h)
+    dn = periodic(lambda x: slopes(x, 1.0)[1], h)
+    inv_n = 1.0 / np.sqrt(1.0 + de * de + dn * dn)
+    relief = h - h.mean()
+    bases = [shading, de * inv_n, dn * inv_n, inv_n, relief]
+    truth = np.array([0.37, -0.21])  # (right, down) pixels
+
+    def shifted(img):  # content moved by ``truth`` (exact, periodic)
+        ramp = np.exp(-2j * np.pi * (fx * truth[0] + fy * truth[1]))
+        return np.fft.ifft2(np.fft.fft2(img) * ramp).real.astype(np.float32)
+
+    frame = shifted(shading - 1.0 * relief)  # as strong as the shading at the longest wavelengths
+    ones = np.ones((n, n), np.float32)
+    f_img = phase.spectrum(frame, ones)
+    f_bases = [phase.spectrum(b.astype(np.float32), ones) for b in bases]
+    f_lo, f_hi = 3.0 / n, 0.2
+    w = phase.band_weight(n, n, f_lo, f_hi)
+    corr = phase.correlate_spectra(f_img, f_bases[0], (n, n), w, 16)
+    pull = corr.shift_px - truth
+    assert abs(pull[1]) > 0.05 and abs(pull[1]) > 5 * abs(pull[0])  # pulled off, along the sun (north)
+    b = illumination.bins((n, n), f_lo, f_hi, 4, 8)
+    est = illumination.joint_shift(f_img, f_bases, b, corr.shift_px)
+    np.testing.assert_allclose(est, truth, atol=0.005)

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from scipy.optimize import minimize
 
 from companion.georef.phase import hermitian_multiplicity, rfreq
 
@@ -93,6 +94,62 @@ def fit_reference(
         coef = scale * np.linalg.solve(Gs + 1e-9 * np.eye(len(scale)), rhs.real * scale)
         out[m] = Xm @ coef
     return out
+
+
+def joint_shift(
+    f_frame: np.ndarray,
+    f_bases: list[np.ndarray],
+    bins: Bins,
+    shift0_px: np.ndarray,
+    step_px: float = 0.3,
+    max_move_px: float = 3.0,
+) -> np.ndarray:
+    """The shift that, with its own best basis coefficients (``fit_reference``'s model: real coefficients per
+    ring), leaves the least of the frame unexplained; searched from ``shift0_px`` (Nelder-Mead, initial steps
+    ``step_px``). Returns ``shift0_px`` if the search moves further than ``max_move_px``.
+
+    Why: the frame holds even, height-like terms (reflectance tied to the relief: dark rocks, dust in hollows;
+    and the darkening 1/sqrt(1 + |grad h|^2) of slopes finer than the DEM, which a smoothed DEM under-draws).
+    Correlated against the odd shading, they move the correlation peak along the sun; alternating "fit the
+    coefficients at the peak, correlate against the fit" settles where the two explain each other, not at
+    the truth, because a shift of the shading along the sun looks partly like such a term. Minimising the
+    fitted residual over the shift itself (the profile likelihood of the shift) does not: measured on the
+    frames of ``bench georef`` with the DEM only coarsened and a uniform albedo, the bias along the sun went
+    from -0.88 to -0.25 px (scene 08) and -0.80 to -0.17 px (scene 05).
+
+    The residual at given shift needs no new fit: with G = Re(X^H W X) per ring (independent of the shift,
+    the ramp has unit modulus) and r = Re(X^H W a e^{2 pi i f.s}), it is sum W|a|^2 - r^T G^-1 r."""
+    a0 = f_frame.ravel()[bins.index].astype(np.complex128)
+    X = np.stack([b.ravel()[bins.index] for b in f_bases], axis=1).astype(np.complex128)
+    w = bins.mult.astype(np.float64)
+    rings = []
+    for r in range(bins.n_rings):
+        m = bins.ring == r
+        if m.sum() < 2 * X.shape[1]:
+            continue
+        XwH = np.conj(X[m]).T * w[m]  # (K, Bm)
+        G = (XwH @ X[m]).real
+        scale = 1.0 / np.sqrt(np.maximum(np.diag(G), 1e-30))
+        Ginv = np.linalg.inv(G * np.outer(scale, scale) + 1e-9 * np.eye(len(scale)))
+        rings.append((m, XwH * scale[:, None], Ginv))
+    if not rings:
+        return np.asarray(shift0_px, float)
+
+    def explained(shift: np.ndarray) -> float:
+        a = a0 * bins.ramp(shift)
+        total = 0.0
+        for m, XwH, Ginv in rings:
+            r = (XwH @ a[m]).real
+            total += float(r @ Ginv @ r)
+        return -total
+
+    s0 = np.asarray(shift0_px, float)
+    simplex = s0 + np.array([[0.0, 0.0], [step_px, 0.0], [0.0, step_px]])
+    res = minimize(
+        explained, s0, method="Nelder-Mead", options=dict(initial_simplex=simplex, xatol=0.005, fatol=0.0)
+    )
+    s = np.asarray(res.x, float)
+    return s if np.all(np.isfinite(s)) and np.hypot(*(s - s0)) <= max_move_px else s0
 
 
 def coherence_weight(
