@@ -105,6 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     p = parser("georef_budget", "geo-referencing error budget: each simulated effect switched off in turn")
     p.add_argument("--frames", type=int, default=None, help="frames per scene and variant (30, quick 4)")
     p.add_argument("--scenes", type=str, default=None, help="default: all nine (quick: 08)")
+    p.add_argument(
+        "--joint-shift", action="store_true", help="the matcher's joint_shift option (off by default)"
+    )
     args = p.parse_args(argv)
     n = args.frames or (4 if args.quick else 30)
     scene_ids = (
@@ -112,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.scenes
         else (["08"] if args.quick else list(SCENE_IDS))
     )
-    opts = GeorefOptions()
+    opts = GeorefOptions(joint_shift=args.joint_shift)
     results: dict[str, dict[str, Any]] = {}
     for sid in scene_ids:
         t0 = time.perf_counter()
@@ -152,6 +155,7 @@ def main(argv: list[str] | None = None) -> int:
                 seed=args.seed,
                 agl_m=AGL_M,
                 presumed_sun_deg=[10.0, 0.0, 60.0],
+                joint_shift=args.joint_shift,
                 dem_degradation=DEGRADATION,
                 uniform_albedo=UNIFORM_ALBEDO,
                 variants=VARIANTS,
