@@ -274,13 +274,16 @@ class InverseDepthEkf:
         H_lm: np.ndarray,
         residual: np.ndarray,
         sigma_px: float,
+        terms: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """Batch update with one pixel measurement (2 rows) per landmark; same result as ``update`` with the
         dense H, computed from the sparse blocks (``landmark_batch_terms``).
 
-        lm_index: (k,); H_pose, H_lm: (k,2,6); residual: (k,2) z - h. Returns the correction."""
+        lm_index: (k,); H_pose, H_lm: (k,2,6); residual: (k,2) z - h. terms: ``landmark_batch_terms`` of
+        these very landmarks on the current state, when the caller has them already (else computed).
+        Returns the correction."""
         k = len(lm_index)
-        PHt, HPHt = self.landmark_batch_terms(lm_index, H_pose, H_lm)
+        PHt, HPHt = self.landmark_batch_terms(lm_index, H_pose, H_lm) if terms is None else terms
         return self._correct(PHt, HPHt + np.eye(2 * k) * sigma_px**2, residual.reshape(2 * k))
 
     def innovation_covariance(self, H: np.ndarray, R_meas: np.ndarray) -> np.ndarray:

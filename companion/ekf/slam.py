@@ -356,9 +356,12 @@ class VisThermalSlam:
         if not o.one_point_ransac or k < o.ransac_min_matches:
             ekf.update_landmarks(lm, Hp, Hl, res, o.pixel_sigma_px)
             return np.ones(k, bool)
-        _, HPHt = ekf.landmark_batch_terms(lm, Hp, Hl)
+        PHt, HPHt = ekf.landmark_batch_terms(lm, Hp, Hl)
         low = low_innovation_inliers(HPHt, res, o.pixel_sigma_px, o.ransac_threshold_px)
-        dx = ekf.update_landmarks(lm[low], Hp[low], Hl[low], res[low], o.pixel_sigma_px)
+        # the first batch's terms are the rows / columns of the low-innovation ones (no second P H^T)
+        rows = np.flatnonzero(np.repeat(low, 2))
+        terms = (PHt[:, rows], HPHt[np.ix_(rows, rows)])
+        dx = ekf.update_landmarks(lm[low], Hp[low], Hl[low], res[low], o.pixel_sigma_px, terms)
         accepted = low.copy()
         rest = np.flatnonzero(~low)
         if len(rest):
