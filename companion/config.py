@@ -129,6 +129,7 @@ class TerrainLbaConfig(_Strict):
     min_frames_between_kf: Annotated[int, Field(ge=1)] = 20
     min_features_kf: Annotated[int, Field(ge=1)] = 50
     max_tracked_ratio_kf: Annotated[float, Field(gt=0, le=1)] = 0.9
+    joint_shift: bool = True  # key-frame fixes: shift estimated jointly with the fitted reference (README)
 
 
 class EkfConfig(_Strict):

@@ -3,6 +3,8 @@ does not load the others' dependencies."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from companion.config import CompanionConfig
@@ -60,6 +62,7 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             min_features_kf=t.min_features_kf,
             max_tracked_ratio_kf=t.max_tracked_ratio_kf,
         )
+        lba_opt = replace(lba_opt, georef=replace(lba_opt.georef, joint_shift=t.joint_shift))
         return TerrainLbaEstimator(
             lba_opt,
             cam.intrinsics(),

@@ -77,11 +77,11 @@ class GeorefOptions:
     refine: bool = True  # later passes correlate against the fitted reference (``illumination``)
     fit_iters: int = 2  # fit + correlate rounds per refining pass
     # then move the shift to where the fitted reference explains the frame best (``illumination.joint_shift``).
-    # Off by default: it removes most of the along-sun bias of a coarsened DEM (bench georef frames, DEM only
-    # coarsened, uniform albedo: scene 08 -0.88 -> -0.25 px, 05 -0.80 -> -0.17 px) and of rock-tied
-    # reflectance (terrain_lba, 190 s flight over scene 05: horizontal error 1.13 -> 0.56 m), but over all nine
-    # flights it is no better (mean 0.450 -> 0.438 m; 02 0.76 -> 1.28, 06 0.29 -> 0.35 m), and it costs
-    # ~12 ms a frame (Nelder-Mead over the shift)
+    # It removes most of the along-sun bias of a coarsened DEM (``bench georef_budget --joint-shift``, DEM only
+    # coarsened, uniform albedo: scene 08 -0.92 -> -0.25 px, 05 -0.56 -> -0.17 px) but adds noise where the
+    # alternating fit was right (true DEM, real albedo, scene 05: 100 % -> 5 % under 1 px), and costs ~12 ms a
+    # frame (Nelder-Mead over the shift). Off for a single fix (as benchmarked, 20 frames a scene: success
+    # summed over the nine scenes 4.35 -> 4.15); on in terrain_lba, whose adjustment averages fixes
     joint_shift: bool = False
     n_rings: int = 4  # fitted reference: independent coefficients per log-spaced frequency ring
     n_sectors: int = 8  # coherence weights: orientation sectors per ring
