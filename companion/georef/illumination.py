@@ -113,9 +113,10 @@ def joint_shift(
     Correlated against the odd shading, they move the correlation peak along the sun; alternating "fit the
     coefficients at the peak, correlate against the fit" settles where the two explain each other, not at
     the truth, because a shift of the shading along the sun looks partly like such a term. Minimising the
-    fitted residual over the shift itself (the profile likelihood of the shift) does not: measured on the
-    frames of ``bench georef`` with the DEM only coarsened and a uniform albedo, the bias along the sun went
-    from -0.88 to -0.25 px (scene 08) and -0.80 to -0.17 px (scene 05).
+    fitted residual over the shift itself (the profile likelihood of the shift) does not: with the DEM only
+    coarsened and a uniform albedo (``python -m bench georef_budget --joint-shift``) the bias along the sun
+    went from -0.92 to -0.25 px on scene 08 and from -0.56 to -0.17 px on scene 05. It costs noise where the
+    alternating fit was right (see ``GeorefOptions.joint_shift``).
 
     The residual at given shift needs no new fit: with G = Re(X^H W X) per ring (independent of the shift,
     the ramp has unit modulus) and r = Re(X^H W a e^{2 pi i f.s}), it is sum W|a|^2 - r^T G^-1 r."""
