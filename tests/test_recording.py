@@ -266,8 +266,10 @@ def test_damaged_mcap_chunk_stops_the_replay_cleanly(sessions, tmp_path) -> None
     at = bytes(data).find(payloads[-1])  # the last message's record: its length field is 26 bytes before
     data[at - 26 : at - 22] = b"\xff\xff\xff\x7f"
     mcap.write_bytes(bytes(data))
+    # at the recorded pace (160 kB every 10 ms): much faster and Zenoh may drop frames (a camera stream's
+    # congestion control), which this test is not about; it failed once at 20x on the CI machine
     res, arrived, _ = replay_into_subscriber(
-        a, b, path, ReplayOptions(rate=20.0, restamp=True), lambda: StampGate()
+        a, b, path, ReplayOptions(rate=1.0, restamp=True), lambda: StampGate()
     )
     n = res.published.get("/uav/camera/nadir", 0)
     assert res.bad == {READ_ERROR: 1}
