@@ -54,9 +54,9 @@ def flight():
     return _render()
 
 
-def _run(flight, options: TerrainLbaOptions, synchronous: bool = True):
+def _estimator(flight, options: TerrainLbaOptions, synchronous: bool) -> TerrainLbaEstimator:
     scene, dem_est, frames, yaw0 = flight
-    est = TerrainLbaEstimator(
+    return TerrainLbaEstimator(
         options,
         INTR,
         R_BODY_CAM_NADIR,
@@ -66,6 +66,11 @@ def _run(flight, options: TerrainLbaOptions, synchronous: bool = True):
         yaw0,
         synchronous_backend=synchronous,
     )
+
+
+def _run(flight, options: TerrainLbaOptions, synchronous: bool = True):
+    frames = flight[2]
+    est = _estimator(flight, options, synchronous)
     out = []
     try:
         for att, alt, frame, p_true in frames:
@@ -173,16 +178,8 @@ def test_back_end_worker_killed_in_flight_is_replaced_and_the_frames_go_on(fligh
     import signal
     import time
 
-    scene, dem_est, frames, yaw0 = flight
-    est = TerrainLbaEstimator(
-        replace(TerrainLbaOptions(), backend_apply="when_ready"),
-        INTR,
-        R_BODY_CAM_NADIR,
-        dem_est,
-        scene.sun,
-        frames[0][3],
-        yaw0,
-    )
+    frames = flight[2]
+    est = _estimator(flight, replace(TerrainLbaOptions(), backend_apply="when_ready"), synchronous=False)
     killed_at = None
     applied_at_kill = 0
     worst_s = 0.0
