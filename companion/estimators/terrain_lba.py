@@ -17,7 +17,7 @@ The autopilot's attitude gives the initial rotation and the gravity prior of the
 gives the monocular scale at initialisation and the height above ground of each geo-fix (eq. 18).
 
 The worker is supervised: if it dies (killed by the OOM killer, a crash inside a native library) or stops
-answering (a "fixed_delay" result more than ``backend_reply_timeout_s`` late), it is counted
+answering (no result ``backend_reply_timeout_s`` after the job, or after it is due with "fixed_delay"), it is counted
 (``backend_restarts``), a new one is started without blocking the frames, and the estimates go on from the
 VO alone meanwhile (their covariance grows with the distance flown); the new back-end aligns itself to the
 map again from the next geo-fixes.
@@ -71,7 +71,7 @@ class TerrainLbaOptions:
     backend_apply: str = "when_ready"  # "when_ready" (lowest latency) or "fixed_delay" (deterministic)
     backend_delay_frames: int = 10  # "fixed_delay" / synchronous: frames between a key frame and its result
     backend_start_timeout_s: float = 120.0  # the worker must be up within this (imports gtsam, builds maps)
-    backend_reply_timeout_s: float = 30.0  # "fixed_delay": a result this late after it is due = hung worker
+    backend_reply_timeout_s: float = 30.0  # no result this long after the job (fixed delay: after due) = hung
     attitude_max_age_us: int = 100_000  # attitude further than this from a frame's stamp is not used
     altimeter_max_age_us: int = 200_000
     initial_sigma_m: float = 1.0  # 1-sigma of the initial position (covariance before any adjustment)
@@ -175,6 +175,9 @@ class TerrainLbaEstimator:
         self._worker_started = 0.0
         self._dead_totals: dict[str, int] = {}  # back-end counters of the workers that were replaced
         self._starter: threading.Thread | None = None  # starts a replacement worker off the frames
+        self._in_flight_since = 0.0
+        self._sender: threading.Thread | None = None  # sends the job in flight
+        self._send_error: str | None = None
         self._closing = threading.Event()
         if synchronous_backend:
             self._backend = _make_backend(self.opt.backend, geo_args)
@@ -257,12 +260,18 @@ class TerrainLbaEstimator:
         if self._starter is not None:
             self._starter.join(timeout=10.0)
             self._starter = None
+        if self._sender is not None:
+            self._sender.join(timeout=5.0)
         if self._proc is not None:
-            with contextlib.suppress(OSError, ValueError):  # the pipe may be gone: the worker then exits
-                self._conn.send(None)
+            if self._sender is None or not self._sender.is_alive():  # one writer on the pipe at a time
+                with contextlib.suppress(OSError, ValueError):  # the pipe may be gone: the worker then exits
+                    self._conn.send(None)
             self._proc.join(timeout=5.0)
             if self._proc.is_alive():
                 self._proc.terminate()
+                self._proc.join(timeout=5.0)
+            if self._proc.is_alive():  # a stopped process does not act on SIGTERM
+                self._proc.kill()
                 self._proc.join(timeout=5.0)
             self._proc = None
 
@@ -321,13 +330,17 @@ class TerrainLbaEstimator:
         proc, conn = self._proc, self._conn
         self._proc = self._conn = None
         self._worker_ready = False
-        if conn is not None:
-            with contextlib.suppress(OSError, ValueError):
-                conn.close()
         if proc is not None:
             if proc.is_alive():
                 proc.kill()
             proc.join(timeout=1.0)
+        if self._sender is not None:  # a send blocked on the dead worker fails now (broken pipe)
+            self._sender.join(timeout=1.0)
+            self._sender = None
+        self._send_error = None
+        if conn is not None:  # only now: closing it under a blocked send would pull the handle from under it
+            with contextlib.suppress(OSError, ValueError):
+                conn.close()
 
         # starting a process blocks its caller for about a second (see _start_worker): not on the frames
         def start() -> None:
@@ -392,13 +405,23 @@ class TerrainLbaEstimator:
         )
         self._fe["backend_jobs"] += 1
         self._in_flight = (k, self.epoch, self.frame_index + self.opt.backend_delay_frames)
+        self._in_flight_since = time.monotonic()
         if self._backend is not None:
             self._sync_result = self._backend.process(job)
         else:
-            try:
-                self._conn.send(job)
-            except (OSError, ValueError) as e:  # BrokenPipeError: the worker is gone
-                self._replace_worker(f"lost ({type(e).__name__}: {e})")
+            # sent from a thread: the job (the key frame's image, the window) is larger than a pipe's buffer,
+            # so a send waits for the worker to read it, and forever if the worker hangs
+            self._send_error = None
+            self._sender = threading.Thread(
+                target=self._send_job, args=(self._conn, job), name="terrain_lba-send", daemon=True
+            )
+            self._sender.start()
+
+    def _send_job(self, conn: Any, job: BackendJob) -> None:
+        try:
+            conn.send(job)
+        except Exception as e:  # noqa: BLE001 - BrokenPipeError (the worker is gone) or any: reported, replaced
+            self._send_error = f"{type(e).__name__}: {e}"
 
     def _collect(self) -> None:
         """Apply the in-flight result if it is due (fixed delay: wait for it) or ready (when_ready)."""
@@ -411,14 +434,20 @@ class TerrainLbaEstimator:
             res = self._sync_result
             self._sync_result = None
         else:
+            if self._send_error is not None:
+                self._replace_worker(f"lost ({self._send_error})")
+                return
             if self.fixed_delay and self.frame_index < due:
                 return
             try:
                 # fixed delay: wait for the result (deterministic output); when ready: only if it is there
                 wait_s = self.opt.backend_reply_timeout_s if self.fixed_delay else 0.0
                 if not self._conn.poll(wait_s):
-                    if self.fixed_delay or not self._proc.is_alive():
-                        self._replace_worker("did not answer" if self._proc.is_alive() else "died")
+                    late = time.monotonic() - self._in_flight_since > self.opt.backend_reply_timeout_s
+                    if not self._proc.is_alive():
+                        self._replace_worker("died")
+                    elif self.fixed_delay or late:
+                        self._replace_worker(f"did not answer in {self.opt.backend_reply_timeout_s:g} s")
                     return
                 res = self._conn.recv()
             except (EOFError, OSError) as e:  # the pipe closed: the worker died
