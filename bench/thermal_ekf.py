@@ -55,8 +55,11 @@ from typing import Any  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-from scipy.stats import linregress  # noqa: E402
-from scipy.stats import t as student_t  # noqa: E402
+from scipy.stats import (  # noqa: E402
+    linregress,  # noqa: E402
+    sem,
+    ttest_rel,
+)
 
 from bench.common import parser, table, write_json  # noqa: E402
 from companion.constants import GRAVITY_MPS2, R_BODY_CAM_NADIR  # noqa: E402
@@ -129,17 +132,19 @@ def cohens_d_paired(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def paired_worse(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
-    """a - b paired over trials: mean, standard error, t and the one-sided p of "a is worse" (Student t)."""
+    """a - b paired over trials (pairs with a NaN left out): mean, standard error, t and the one-sided p of
+    "a is worse" (SciPy's paired t-test)."""
     diff = np.asarray(a, float) - np.asarray(b, float)
     diff = diff[np.isfinite(diff)]
-    n = len(diff)
-    se = float(np.std(diff, ddof=1) / np.sqrt(n)) if n > 1 else float("nan")
-    t = float(np.mean(diff) / se) if se > 0 else float("nan")
+    if len(diff) < 2:
+        return {"diff": float(np.mean(diff)) if len(diff) else float("nan"), "se": float("nan"),
+                "t": float("nan"), "p": float("nan")}  # fmt: skip
+    res = ttest_rel(diff, np.zeros_like(diff), alternative="greater")
     return {
         "diff": float(np.mean(diff)),
-        "se": se,
-        "t": t,
-        "p": float(student_t.sf(t, n - 1)) if n > 1 else float("nan"),
+        "se": float(sem(diff)),
+        "t": float(res.statistic),
+        "p": float(res.pvalue),
     }
 
 
