@@ -20,8 +20,10 @@ the peak.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
@@ -70,6 +72,19 @@ def bins(shape: tuple[int, int], f_lo: float, f_hi: float, n_rings: int, n_secto
     return Bins.make(shape, f_lo, f_hi, n_rings, n_sectors)
 
 
+def _ring_systems(X: np.ndarray, bins: Bins) -> Iterator[tuple[np.ndarray, Any, Any, Any]]:
+    """Per ring: (mask, X^H W (K, Bm), Re(X^H W X) (K, K), column scales 1 / sqrt(diag)) of the per-ring least
+    squares, W the Hermitian multiplicity; (mask, None, None, None) for a ring with too few bins to fit."""
+    for r in range(bins.n_rings):
+        m = bins.ring == r
+        if m.sum() < 2 * X.shape[1]:
+            yield m, None, None, None
+            continue
+        XwH = np.conj(X[m]).T * bins.mult[m]
+        G = (XwH @ X[m]).real
+        yield m, XwH, G, 1.0 / np.sqrt(np.maximum(np.diag(G), 1e-30))
+
+
 def fit_reference(
     f_frame: np.ndarray, f_bases: list[np.ndarray], bins: Bins, shift_px: np.ndarray
 ) -> np.ndarray:
@@ -78,21 +93,16 @@ def fit_reference(
     a = f_frame.ravel()[bins.index] * bins.ramp(shift_px)
     X = np.stack([b.ravel()[bins.index] for b in f_bases], axis=1)
     out = np.zeros(a.shape, np.complex128)
-    for r in range(bins.n_rings):
-        m = bins.ring == r
-        if m.sum() < 2 * X.shape[1]:
+    for m, XwH, G, scale in _ring_systems(X, bins):
+        if XwH is None:
             out[m] = X[m, 0]
             continue
-        Xm = X[m]
-        w = bins.mult[m]
         # real coefficients c minimising sum_bins w |a - X c|^2: normal equations (K x K, K = 5), each
         # column scaled to unit norm so that the heights (m) and the shadings (0..L) condition alike
-        G = (np.conj(Xm).T * w) @ Xm
-        rhs = (np.conj(Xm).T * w) @ a[m]
-        scale = 1.0 / np.sqrt(np.maximum(np.diag(G).real, 1e-30))
-        Gs = G.real * np.outer(scale, scale)
+        rhs = XwH @ a[m]
+        Gs = G * np.outer(scale, scale)
         coef = scale * np.linalg.solve(Gs + 1e-9 * np.eye(len(scale)), rhs.real * scale)
-        out[m] = Xm @ coef
+        out[m] = X[m] @ coef
     return out
 
 
@@ -122,15 +132,10 @@ def joint_shift(
     the ramp has unit modulus) and r = Re(X^H W a e^{2 pi i f.s}), it is sum W|a|^2 - r^T G^-1 r."""
     a0 = f_frame.ravel()[bins.index].astype(np.complex128)
     X = np.stack([b.ravel()[bins.index] for b in f_bases], axis=1).astype(np.complex128)
-    w = bins.mult.astype(np.float64)
     rings = []
-    for r in range(bins.n_rings):
-        m = bins.ring == r
-        if m.sum() < 2 * X.shape[1]:
+    for m, XwH, G, scale in _ring_systems(X, bins):
+        if XwH is None:
             continue
-        XwH = np.conj(X[m]).T * w[m]  # (K, Bm)
-        G = (XwH @ X[m]).real
-        scale = 1.0 / np.sqrt(np.maximum(np.diag(G), 1e-30))
         Ginv = np.linalg.inv(G * np.outer(scale, scale) + 1e-9 * np.eye(len(scale)))
         rings.append((m, XwH * scale[:, None], Ginv))
     if not rings:
