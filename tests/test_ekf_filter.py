@@ -185,6 +185,39 @@ def test_landmark_budget_and_bookkeeping(mode):
     assert sum(pose.matched.values()) >= 8 * len(slam.camera_names)
 
 
+@pytest.mark.parametrize("anchor", [True, False])
+def test_landmarks_are_matched_against_their_first_descriptor(anchor):
+    """By default a landmark keeps the descriptor it was created with; with ``anchor_descriptor=False`` it
+    takes each matched keypoint's (the synthetic keypoints carry fresh descriptor noise every frame)."""
+    opts = EkfOptions(mode="visible", max_landmarks_per_camera=12, seed=0, anchor_descriptor=anchor)
+    traj = straight_flight(duration_s=16.0)
+    slam = VisThermalSlam(opts, {"visible": camera_model()}, G)
+    st0 = traj.state_at(0.0)
+    slam.start(0, st0.p_world, st0.v_world, quat_from_rot(st0.R_world_body))
+    rng = np.random.default_rng(0)
+    imu = imu_samples(traj, 100.0, None, 0)
+    first: dict[int, np.ndarray] = {}
+    k, kept, changed = 0, 0, 0
+    for t in np.arange(0.5, 5.0, 0.5):
+        t_us = int(t * 1e6)
+        while k < len(imu.t_us) and imu.t_us[k] <= t_us:
+            slam.add_imu(int(imu.t_us[k]), imu.accel_mps2[k], imu.gyro_rps[k])
+            k += 1
+        st = traj.state_at(t)
+        slam.add_altimeter(t_us, float(-st.p_world[2] / st.R_world_body[2, 2]))
+        det, _ = detections(SCENE, st.R_world_body, st.p_world, rng)
+        slam.process_frame(t_us, {"visible": det})
+        for lid, d in slam._desc.items():
+            if lid not in first:
+                first[lid] = d.copy()
+            elif np.array_equal(first[lid], d):
+                kept += 1
+            else:
+                changed += 1
+    assert kept + changed > 50
+    assert (changed == 0) if anchor else (changed > 5 * kept)  # the unmatched ones keep theirs
+
+
 def test_imu_before_the_first_frame_is_bounded():
     """A camera that never starts must not make the IMU queue grow without bound."""
     slam = VisThermalSlam(EkfOptions(mode="visible"), {"visible": camera_model()}, G)

@@ -302,7 +302,8 @@ class VisThermalSlam:
                     rows_res.append(det.uv[j] - proj.uv[vis[k]])
                     rows_cam.append(cam_name)
                     used[j] = True
-                    self._desc[lid] = det.desc[j]
+                    if not o.anchor_descriptor:
+                        self._desc[lid] = det.desc[j]
                     tracked_uv[cam_name].append(det.uv[j])
                 else:
                     self._missed(int(li), keep)
