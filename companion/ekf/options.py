@@ -59,9 +59,9 @@ class EkfOptions:
     descriptor_ratio: float = 0.85  # Lowe ratio test between the best and second-best gated candidates
     # match every landmark against the descriptor it was created with (MonoSLAM keeps a feature's first
     # patch: Davison et al., T-PAMI 2007). False: against the last matched keypoint's, which lets a track
-    # slide a little per frame onto a neighbour that looks alike. Screened on 100 cached benchmark runs
-    # (10 trajectories x 10 trials, paired): E lower by 0.057 +- 0.029 / 0.030 +- 0.015 / 0.013 +- 0.016
-    # points visible / thermal / dual, mean position error lower by 0.07 / 0.04 / 0.03 m
+    # slide a little per frame onto a neighbour that looks alike. On the 300-run benchmark, paired against
+    # False: E lower by 0.059 +- 0.017 / 0.020 +- 0.009 / 0.015 +- 0.010 points visible / thermal / dual,
+    # mean position error by 0.086 / 0.024 / 0.027 m (README)
     anchor_descriptor: bool = True
     max_consecutive_misses: int = 2  # frames a landmark may go unmatched inside the image before deletion
     image_margin_px: float = 8.0  # landmarks predicted closer than this to the border are deleted
