@@ -155,9 +155,9 @@ def test_imu_arriving_after_the_frame_changes_little():
     assert on_time[2].counters.stale_frames == 0
 
 
-@pytest.mark.parametrize("mode", ["visible", "dual"])
-def test_landmark_budget_and_bookkeeping(mode):
-    opts = EkfOptions(mode=mode, max_landmarks_per_camera=12, seed=0)
+def _noiseless_frames(opts: EkfOptions, t_end_s: float):
+    """Run the SLAM (both cameras given; the mode picks) on the straight flight with a noiseless IMU and
+    altimeter, a frame every 0.5 s up to ``t_end_s``; yields (slam, pose) after each frame."""
     traj = straight_flight(duration_s=16.0)
     slam = VisThermalSlam(opts, {"visible": camera_model(), "thermal": camera_model()}, G)
     st0 = traj.state_at(0.0)
@@ -165,7 +165,7 @@ def test_landmark_budget_and_bookkeeping(mode):
     rng = np.random.default_rng(0)
     imu = imu_samples(traj, 100.0, None, 0)
     k = 0
-    for t in np.arange(0.5, 7.0, 0.5):
+    for t in np.arange(0.5, t_end_s, 0.5):
         t_us = int(t * 1e6)
         while k < len(imu.t_us) and imu.t_us[k] <= t_us:
             slam.add_imu(int(imu.t_us[k]), imu.accel_mps2[k], imu.gyro_rps[k])
@@ -173,7 +173,12 @@ def test_landmark_budget_and_bookkeeping(mode):
         st = traj.state_at(t)
         slam.add_altimeter(t_us, float(-st.p_world[2] / st.R_world_body[2, 2]))
         det, _ = detections(SCENE, st.R_world_body, st.p_world, rng)
-        pose = slam.process_frame(t_us, {c: det for c in slam.camera_names})
+        yield slam, slam.process_frame(t_us, {c: det for c in slam.camera_names})
+
+
+@pytest.mark.parametrize("mode", ["visible", "dual"])
+def test_landmark_budget_and_bookkeeping(mode):
+    for slam, pose in _noiseless_frames(EkfOptions(mode=mode, max_landmarks_per_camera=12, seed=0), 7.0):
         ekf = slam.ekf
         assert ekf.P.shape == (18 + 6 * ekf.n_landmarks,) * 2
         assert len(ekf.y_first) == len(ekf.lm_id) == ekf.n_landmarks
@@ -190,23 +195,9 @@ def test_landmarks_are_matched_against_their_first_descriptor(anchor):
     """By default a landmark keeps the descriptor it was created with; with ``anchor_descriptor=False`` it
     takes each matched keypoint's (the synthetic keypoints carry fresh descriptor noise every frame)."""
     opts = EkfOptions(mode="visible", max_landmarks_per_camera=12, seed=0, anchor_descriptor=anchor)
-    traj = straight_flight(duration_s=16.0)
-    slam = VisThermalSlam(opts, {"visible": camera_model()}, G)
-    st0 = traj.state_at(0.0)
-    slam.start(0, st0.p_world, st0.v_world, quat_from_rot(st0.R_world_body))
-    rng = np.random.default_rng(0)
-    imu = imu_samples(traj, 100.0, None, 0)
     first: dict[int, np.ndarray] = {}
-    k, kept, changed = 0, 0, 0
-    for t in np.arange(0.5, 5.0, 0.5):
-        t_us = int(t * 1e6)
-        while k < len(imu.t_us) and imu.t_us[k] <= t_us:
-            slam.add_imu(int(imu.t_us[k]), imu.accel_mps2[k], imu.gyro_rps[k])
-            k += 1
-        st = traj.state_at(t)
-        slam.add_altimeter(t_us, float(-st.p_world[2] / st.R_world_body[2, 2]))
-        det, _ = detections(SCENE, st.R_world_body, st.p_world, rng)
-        slam.process_frame(t_us, {"visible": det})
+    kept, changed = 0, 0
+    for slam, _ in _noiseless_frames(opts, 5.0):
         for lid, d in slam._desc.items():
             if lid not in first:
                 first[lid] = d.copy()
