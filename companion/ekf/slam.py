@@ -430,7 +430,8 @@ class VisThermalSlam:
         y, J_pose, J_uv = lmk.initialise(uv, rho0, ekf.r, ekf.R_world_body, cam)
         ids = ekf.add_landmarks(y, J_pose, J_uv, o.pixel_sigma_px, sigma_rho, ci)
         for lid, j in zip(ids, sel):
-            self._desc[int(lid)] = det.desc[j]
+            # a copy: a row view would keep the whole frame's descriptor array alive as long as the landmark
+            self._desc[int(lid)] = det.desc[j].copy()
             self._misses[int(lid)] = 0
         self.counters.landmarks_added[cam_name] += len(ids)
 
