@@ -55,11 +55,7 @@ from typing import Any  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-from scipy.stats import (  # noqa: E402
-    linregress,  # noqa: E402
-    sem,
-    ttest_rel,
-)
+from scipy.stats import linregress, sem, ttest_1samp  # noqa: E402
 
 from bench.common import parser, table, write_json  # noqa: E402
 from companion.constants import GRAVITY_MPS2, R_BODY_CAM_NADIR  # noqa: E402
@@ -133,13 +129,13 @@ def cohens_d_paired(a: np.ndarray, b: np.ndarray) -> float:
 
 def paired_worse(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
     """a - b paired over trials (pairs with a NaN left out): mean, standard error, t and the one-sided p of
-    "a is worse" (SciPy's paired t-test)."""
+    "a is worse" (the paired t-test: SciPy's one-sample test on the differences)."""
     diff = np.asarray(a, float) - np.asarray(b, float)
     diff = diff[np.isfinite(diff)]
     if len(diff) < 2:
         return {"diff": float(np.mean(diff)) if len(diff) else float("nan"), "se": float("nan"),
                 "t": float("nan"), "p": float("nan")}  # fmt: skip
-    res = ttest_rel(diff, np.zeros_like(diff), alternative="greater")
+    res = ttest_1samp(diff, 0.0, alternative="greater")
     return {
         "diff": float(np.mean(diff)),
         "se": float(sem(diff)),
