@@ -139,6 +139,8 @@ class EkfConfig(_Strict):
     pair_tolerance_ms: Annotated[float, Field(gt=0)] = 5.0
     one_point_ransac: bool = True  # refuse matches the other matches disagree with (Civera et al. 2010)
     ransac_threshold_px: Annotated[float, Field(gt=0)] = 0.5
+    # match a landmark against the descriptor it was created with (false: the last matched keypoint's)
+    anchor_descriptor: bool = True
 
 
 class EstimatorConfig(_Strict):

@@ -85,6 +85,7 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             sampling=e.sampling,
             one_point_ransac=e.one_point_ransac,
             ransac_threshold_px=e.ransac_threshold_px,
+            anchor_descriptor=e.anchor_descriptor,
         )
         planet = cfg.origin.planet if cfg.origin is not None else "europa"
         p0 = cfg.estimator.initial_position_ned_m

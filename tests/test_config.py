@@ -71,6 +71,34 @@ def test_overrides_are_validated_too() -> None:
         apply_overrides(cfg, ["mavlink.sysid=0"], "x")
 
 
+def test_every_ekf_key_reaches_the_filter_options() -> None:
+    """Each [estimator.ekf] key set away from its default arrives in the estimator's EkfOptions."""
+    from companion.config import EkfConfig
+    from companion.factory import build_estimator
+
+    changed = {
+        "mode": "thermal",
+        "max_landmarks_per_camera": 20,
+        "sampling": "uniform",
+        "one_point_ransac": False,
+        "ransac_threshold_px": 0.8,
+        "anchor_descriptor": False,
+    }
+    assert set(changed) | {"pair_tolerance_ms"} == set(EkfConfig.model_fields)  # a new key must join here
+    cfg = parse_config(
+        {
+            "cameras": {"thermal": {"key": "t", "width": 640, "height": 480}},
+            "estimator": {"kind": "vis_thermal_ekf", "ekf": changed},
+        }
+    )
+    est = build_estimator(cfg)
+    try:
+        for key, value in changed.items():
+            assert getattr(est.options, key) == value, key  # type: ignore[attr-defined]
+    finally:
+        est.close()
+
+
 def test_cli_exits_2_with_a_clear_message(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('[cameras.nadir]\nkey = "k"\nwidht = 480\n[dem]\npath = "d.npz"\n')
