@@ -24,7 +24,8 @@ Cohen's d (paired): mean(E_a - E_b) / std(E_a - E_b, ddof=1) over the trajectory
 means b is better (paper 2 reports magnitudes). Averages: the mean over trajectories of the per-trajectory
 E and I, as the paper's "Average" row; because E is a regression slope it can be near zero or negative on
 a good run, where a per-trajectory I explodes, so I is also given on the trajectory-averaged E
-("I_..._of_mean_E", the "of avg E" row).
+("I_..._of_mean_E", the "of avg E" row). I_ci95 (average): 95 % percentile-bootstrap intervals of both
+averages, the trials resampled within each trajectory, paired across the modes (``improvement_bootstrap``).
 dual_vs_best_single (per trajectory): dual minus the better single camera's E, paired over the trials, with
 its standard error, t and one-sided p; the average lists the trajectories where dual is worse beyond t = 2,
 and those where it is worse at a Holm-Bonferroni adjusted p < 0.05 over the ten trajectories.
@@ -162,6 +163,38 @@ def holm_adjusted(p: list[float]) -> list[float]:
 def improvement(e_a: float, e_b: float) -> float:
     """Eq. 10: (E_a - E_b) / E_a * 100."""
     return float((e_a - e_b) / e_a * 100.0) if e_a else float("nan")
+
+
+def improvement_bootstrap(
+    E: dict[str, dict[str, np.ndarray]], n_boot: int = 2000, seed: int = 0, level: float = 95.0
+) -> dict[str, list[float]]:
+    """Percentile bootstrap intervals of the averaged improvements (eq. 10).
+
+    E: trajectory -> mode ("visible", "thermal", "dual") -> (trials,) E in percent, the modes' trials paired
+    (same flight). Each resample draws the trials with replacement within every trajectory, the same draw for
+    the three modes, and recomputes ``I_<a>_vs_<b>`` (the mean over trajectories of eq. 10 on each one's mean
+    E) and ``I_<a>_vs_<b>_of_mean_E`` (eq. 10 on the trajectory-averaged E). Returns [low, high] of each.
+    Stratified and paired resampling is not what ``scipy.stats.bootstrap`` does (it resamples whole samples,
+    not trials within strata); written here.
+    """
+    rng = np.random.default_rng(seed)
+    modes = ("visible", "thermal", "dual")
+    means: dict[str, list[np.ndarray]] = {c: [] for c in modes}  # per trajectory: (n_boot,) mean E
+    for per_mode in E.values():
+        n = len(per_mode["visible"])
+        idx = rng.integers(0, n, size=(n_boot, n))
+        for c in modes:
+            means[c].append(np.nanmean(np.asarray(per_mode[c], float)[idx], axis=1))
+    m = {c: np.array(v) for c, v in means.items()}  # (trajectories, n_boot)
+    tail = (100.0 - level) / 2.0
+    out: dict[str, list[float]] = {}
+    for a, b, ca, cb in PAIRS:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            per_traj = (m[ca] - m[cb]) / m[ca] * 100.0
+            of_mean = (m[ca].mean(axis=0) - m[cb].mean(axis=0)) / m[ca].mean(axis=0) * 100.0
+        for key, val in ((f"I_{a}_vs_{b}", np.mean(per_traj, axis=0)), (f"I_{a}_vs_{b}_of_mean_E", of_mean)):
+            out[key] = [float(x) for x in np.nanpercentile(val, [tail, 100.0 - tail])]
+    return out
 
 
 def bench_options(detect_scale: float | None = None, initial_attitude_deg: float | None = None) -> EkfOptions:
@@ -335,6 +368,11 @@ def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]
         avg[f"I_{a}_vs_{b}"] = float(np.mean([per[k][f"I_{a}_vs_{b}"] for k in keys]))
         # eq. 10 on the trajectory-averaged E: robust when some trajectory's E is near zero (its I explodes)
         avg[f"I_{a}_vs_{b}_of_mean_E"] = improvement(avg[ca], avg[cb])
+    # how far the averaged improvements could move with other trials of the same flights: a trajectory whose
+    # visible E is near zero makes its I swing widely, so the interval is wide although the E are tight
+    avg["I_ci95"] = improvement_bootstrap(
+        {k: {c: per[k][c]["per_trial"] for c in ("visible", "thermal", "dual")} for k in keys}
+    )
     # trajectories where dual is worse than the better single camera by more than two standard errors
     avg["dual_worse_than_best_single"] = [k for k in keys if per[k]["dual_vs_best_single"]["t"] > 2.0]
     # ten trajectories are ten tests: at t > 2 (one-sided p 0.027 with 29 dof) one of them passes by chance
@@ -498,9 +536,14 @@ def main(argv: list[str] | None = None) -> int:
     rows2 = [[k] + [per[k][f"{x}_{a}_vs_{b}"] for a, b, _, _ in PAIRS for x in ("I", "d")] for k in per]
     rows2.append(["avg"] + [v for a, b, _, _ in PAIRS for v in (avg[f"I_{a}_vs_{b}"], "")])
     rows2.append(["of avg E"] + [v for a, b, _, _ in PAIRS for v in (avg[f"I_{a}_vs_{b}_of_mean_E"], "")])
+    ci = avg["I_ci95"]
+    for label, suffix in (("avg 95% CI", ""), ("of avg E 95% CI", "_of_mean_E")):
+        rows2.append([label] + [v for a, b, _, _ in PAIRS
+                                for v in ("{:.1f} .. {:.1f}".format(*ci[f"I_{a}_vs_{b}{suffix}"]), "")])  # fmt: skip
     print()
     print(table(["traj", "I vis/tir %", "d", "I vis/dual %", "d", "I tir/dual %", "d"], rows2,
-                "Table 2 analogue: improvement I (eq. 10) and paired Cohen's d (positive: second better)"))  # fmt: skip
+                "Table 2 analogue: improvement I (eq. 10) and paired Cohen's d (positive: second better); "
+                "95% CI: bootstrap over the trials within each trajectory"))  # fmt: skip
     rows5 = [[k, per[k]["dual_vs_best_single"]["best"], per[k][per[k]["dual_vs_best_single"]["best"]]["E_percent"],
               per[k]["dual"]["E_percent"]] + [per[k]["dual_vs_best_single"][x] for x in ("diff_percent", "se", "t", "p_holm")]
              for k in per]  # fmt: skip

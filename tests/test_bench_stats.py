@@ -1,4 +1,5 @@
-"""The EKF benchmark's "dual worse than the better single camera beyond noise" statistics."""
+"""The EKF benchmark's statistics: "dual worse than the better single camera beyond noise", and the
+uncertainty of the averaged improvements."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.stats import ttest_rel
 
-from bench.thermal_ekf import holm_adjusted, paired_worse
+from bench.thermal_ekf import holm_adjusted, improvement, improvement_bootstrap, paired_worse
 
 
 def test_paired_worse_is_scipys_one_sided_paired_t() -> None:
@@ -36,3 +37,34 @@ def test_one_significant_trajectory_of_ten_survives_holm_only_when_strong() -> N
     p = [0.5] * 9
     assert holm_adjusted(p + [0.004])[-1] == pytest.approx(0.04)  # 0.004 x 10: still below 0.05
     assert holm_adjusted(p + [0.0064])[-1] > 0.05  # a t = 2.65 over 30 trials alone is not
+
+
+def _flights(rng: np.random.Generator, trials: int, noise: float) -> dict[str, dict[str, np.ndarray]]:
+    """Two trajectories with true E visible / thermal / dual 0.30 / 0.20 / 0.15 and 0.20 / 0.16 / 0.12 %."""
+    true = {"1": (0.30, 0.20, 0.15), "2": (0.20, 0.16, 0.12)}
+    return {
+        k: {c: e + rng.normal(0.0, noise, trials) for c, e in zip(("visible", "thermal", "dual"), v)}
+        for k, v in true.items()
+    }
+
+
+def test_improvement_interval_is_a_point_without_trial_noise() -> None:
+    E = _flights(np.random.default_rng(0), 30, 0.0)
+    ci = improvement_bootstrap(E, n_boot=200)
+    want = np.mean([improvement(0.30, 0.15), improvement(0.20, 0.12)])  # 50 % and 40 %
+    assert ci["I_vis_vs_dual"] == pytest.approx([want, want])
+    assert ci["I_vis_vs_dual_of_mean_E"] == pytest.approx([improvement(0.25, 0.135)] * 2)
+
+
+def test_improvement_interval_covers_the_estimate_and_narrows_with_trials() -> None:
+    rng = np.random.default_rng(1)
+    widths = []
+    for trials in (30, 480):
+        E = _flights(rng, trials, 0.05)
+        ci = improvement_bootstrap(E, n_boot=1000)
+        est = np.mean([improvement(E[k]["visible"].mean(), E[k]["dual"].mean()) for k in E])
+        lo, hi = ci["I_vis_vs_dual"]
+        assert lo < est < hi
+        widths.append(hi - lo)
+    # the interval's width falls as 1 / sqrt(trials): 4x narrower for 16x the trials (loose margins)
+    assert 2.5 < widths[0] / widths[1] < 6.5
