@@ -18,6 +18,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -320,7 +321,8 @@ class PtyBridge:
 
     def _pump(self) -> None:
         while not self._stop.is_set():
-            r, _, _ = select.select([self.master, self.sock], [], [], 0.05)
+            fds: list[Any] = [self.master, self.sock]  # a pty fd and a socket
+            r, _, _ = select.select(fds, [], [], 0.05)
             for fd in r:
                 try:
                     data = os.read(self.master, 4096) if fd == self.master else self.sock.recv(4096)
@@ -384,7 +386,9 @@ def test_serial_link_cut_restored_and_autopilot_reboot(tmp_path: Path, dem_path)
     t_cut = 14.0 - 4.0  # flight time when the cable was pulled (after the 4 s start delay), roughly
     after_restore = recs_t[recs_t > t_cut + 7.0]
     assert len(after_restore) >= 10, "no estimates after the link came back"
+    assert summary is not None, "the simulated autopilot did not finish"
     assert summary["resets"] >= 1, "reset_counter was not bumped after the autopilot rebooted"
-    assert st is not None and st["link"]["autopilot_resets"], st["link"]
+    assert st is not None, "no status from the daemon"
+    assert st["link"]["autopilot_resets"], st["link"]
     # estimates kept flowing after the reboot, stamped in the new boot clock
     assert recs_t.max() > 30.0 - 4.0, f"last estimate at {recs_t.max():.1f} s"

@@ -43,8 +43,10 @@ def _fly(
     slam = VisThermalSlam(opts, {"visible": camera_model()}, G)
     st0 = traj.state_at(0.0)
     slam.start(0, st0.p_world, st0.v_world, quat_from_rot(st0.R_world_body))
-    dx = np.random.default_rng(seed + 1000).multivariate_normal(np.zeros(9), slam.ekf.P[:9, :9])
-    slam.ekf._inject(-np.concatenate([dx, np.zeros(9)]))
+    ekf = slam.ekf
+    assert ekf is not None
+    dx = np.random.default_rng(seed + 1000).multivariate_normal(np.zeros(9), ekf.P[:9, :9])
+    ekf._inject(-np.concatenate([dx, np.zeros(9)]))
     rng = np.random.default_rng(seed + 2000)
     t_frames = np.arange(0.5, traj.t1_s, 1.0 / cam_hz)
     t_alt = np.arange(0.05, traj.t1_s, 0.1)
@@ -53,7 +55,8 @@ def _fly(
     events += [(int(t * 1e6), 1, i) for i, t in enumerate(t_alt)]
     events += [(int(t * 1e6), 2, i) for i, t in enumerate(t_frames)]
     events.sort()
-    nees, est = [], []
+    nees: list[list[float]] = []
+    est = []
     for arrival, kind, i in events:
         if kind == 0:
             slam.add_imu(int(imu.t_us[i]), imu.accel_mps2[i], imu.gyro_rps[i])
@@ -68,10 +71,13 @@ def _fly(
                 ang = rng.uniform(0, 2 * np.pi, int(bad.sum()))
                 det.uv[bad] += outlier_px * np.column_stack([np.cos(ang), np.sin(ang)])
             pose = slam.process_frame(arrival, {"visible": det})
-            e = _error(st.p_world, st.R_world_body, slam.ekf)
-            P = slam.ekf.covariance()[:6, :6]
+            e = _error(st.p_world, st.R_world_body, ekf)
+            P = ekf.covariance()[:6, :6]
             nees.append(
-                [e[:3] @ np.linalg.solve(P[:3, :3], e[:3]), e[3:] @ np.linalg.solve(P[3:, 3:], e[3:])]
+                [
+                    float(e[:3] @ np.linalg.solve(P[:3, :3], e[:3])),
+                    float(e[3:] @ np.linalg.solve(P[3:, 3:], e[3:])),
+                ]
             )
             est.append(pose.p_world)
     return np.array(nees), np.array(est), slam

@@ -7,6 +7,7 @@ import socket
 import tempfile
 import threading
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -228,6 +229,7 @@ def test_parses_autopilot_messages_in_si_units(peer: UdpPeer) -> None:
         peer.send(m.gps_global_origin_encode(-147_000_000, 1_374_000_000, 250_500, 0))
         peer.send(m.local_position_ned_encode(1040, 1.0, 2.0, -30.0, 0.1, 0.2, 0.0))
         other = mav2.MAVLink(None, srcSystem=255, srcComponent=190)  # a GCS: not our autopilot
+        assert peer.addr is not None
         peer.sock.sendto(other.attitude_encode(1050, 9, 9, 9, 0, 0, 0).pack(other), peer.addr)
         assert wait_for(lambda: link.local_position is not None)
         time.sleep(0.1)
@@ -241,6 +243,7 @@ def test_parses_autopilot_messages_in_si_units(peer: UdpPeer) -> None:
     origin = got["origin"][0]
     assert origin.lat_deg == pytest.approx(-14.7) and origin.lon_deg == pytest.approx(137.4)
     assert origin.alt_m == pytest.approx(250.5)
+    assert link.local_position is not None
     np.testing.assert_allclose(link.local_position.p_ned_m, [1, 2, -30])
     assert link.ignored_sources == 1
     # Stamps are in the companion clock (Unix us): arrival time while not synced.
@@ -255,7 +258,7 @@ def test_signed_link_refuses_unsigned_and_accepts_signed() -> None:
             opts = MavlinkOptions(connection=f"udpout:127.0.0.1:{p.port}", signing_key=KEY)
             link = MavlinkLink(opts, callbacks=LinkCallbacks(on_attitude=got.append))
             with link:
-                assert wait_for(lambda p=p: p.of("HEARTBEAT"))
+                assert wait_for(partial(p.of, "HEARTBEAT"))
                 p.send(p.mav.attitude_encode(1000, 0.1, 0.2, 0.3, 0, 0, 0))
                 time.sleep(0.3)
             assert len(got) == expect
@@ -289,6 +292,7 @@ def test_timesync_converges_and_frames_map_by_own_stamp() -> None:
     try:
         assert wait_for(lambda: link.timesync.synced, 5.0)
         time.sleep(1.0)
+        assert link.timesync.offset_us is not None
         assert abs(link.timesync.offset_us - sim.true_offset_us()) < 2_000
         # Frames captured every 50 ms; some dropped, one sent late: each keeps its own mapping.
         now = time.time_ns() // 1000
@@ -315,9 +319,9 @@ def test_signing_end_to_end_with_sim() -> None:
         link.start()
         try:
             if link_key is not None:
-                assert wait_for(lambda link=link: link.timesync.synced, 5.0)
+                assert wait_for(partial(getattr, link.timesync, "synced"), 5.0)
                 assert link.send_estimate(estimate(time.time_ns() // 1000 - 20_000)) is None
-                assert wait_for(lambda sim=sim: sim.accepted(), 3.0)
+                assert wait_for(sim.accepted, 3.0)
             else:
                 time.sleep(1.0)
                 link.send_estimate(estimate(time.time_ns() // 1000), usec_autopilot=sim.boot_us())
@@ -523,6 +527,7 @@ def test_tcp_link_to_sim_tcp_server() -> None:
     finally:
         link.stop()
         sim.stop()
+    assert link.timesync.offset_us is not None
     assert abs(link.timesync.offset_us - sim.true_offset_us()) < 2_000
     assert link.origin is not None and link.origin.lat_deg == pytest.approx(-14.5)
     assert link.origin.alt_m == pytest.approx(-2500.0)

@@ -26,25 +26,27 @@ K = CameraIntrinsics.from_focal_sensor(480, 480, 36, 36).K
 def _scene(seed: int = 0, n_kf: int = 12, n_pts: int = 600):
     """A nadir camera flying east at 100 m over rolling ground; key frames every 6 m."""
     rng = np.random.default_rng(seed)
-    T = []
+    poses = []
     for i in range(n_kf):
         R = (
             rot_from_rpy(0.02 * rng.standard_normal(), 0.02 * rng.standard_normal(), 0.5 * np.pi)
             @ R_BODY_CAM_NADIR
         )
-        T.append(make_T(R, np.array([0.0, 6.0 * i, -100.0])))
-    T = np.stack(T)
+        poses.append(make_T(R, np.array([0.0, 6.0 * i, -100.0])))
+    T = np.stack(poses)
     P = np.c_[
         rng.uniform(-50, 50, n_pts), rng.uniform(-50, 6.0 * n_kf + 50, n_pts), rng.uniform(-8, 8, n_pts)
     ]
-    obs_kf, obs_lm, obs_px = [], [], []
+    kf_list: list[int] = []
+    lm_list: list[int] = []
+    px_list: list[np.ndarray] = []
     for i in range(n_kf):
         uv, z = reproject(K, T[i], P)
         vis = np.flatnonzero((z > 0) & (uv[:, 0] > 0) & (uv[:, 0] < 480) & (uv[:, 1] > 0) & (uv[:, 1] < 480))
-        obs_kf += [i] * len(vis)
-        obs_lm += list(vis)
-        obs_px += list(uv[vis] + 0.3 * rng.standard_normal((len(vis), 2)))
-    obs_kf, obs_lm, obs_px = np.array(obs_kf), np.array(obs_lm), np.array(obs_px)
+        kf_list += [i] * len(vis)
+        lm_list += [int(j) for j in vis]
+        px_list += list(uv[vis] + 0.3 * rng.standard_normal((len(vis), 2)))
+    obs_kf, obs_lm, obs_px = np.array(kf_list), np.array(lm_list), np.array(px_list)
     seen = np.bincount(obs_lm, minlength=n_pts) >= 2
     remap = -np.ones(n_pts, int)
     remap[seen] = np.arange(seen.sum())

@@ -127,14 +127,16 @@ def test_record_writes_mcap_with_the_cdr_bytes_as_received(sessions, tmp_path) -
     with Reader(tmp_path / "bag") as reader:
         types = {c.topic: c.msgtype for c in reader.connections}
         assert types == {"/uav/camera/nadir": IMAGE_MSGTYPE, "/companion/status": STRING_MSGTYPE}
-        images, status = [], []
+        images: list[tuple[int, bytes]] = []
+        status: list[tuple[int, bytes]] = []
         for conn, log_ns, raw in reader.messages():
             assert t_start <= log_ns <= t_end  # log time = receive time
             (images if conn.topic == "/uav/camera/nadir" else status).append((log_ns, bytes(raw)))
     assert [raw for _, raw in images] == payloads  # byte for byte, in order
     log_times = [t for t, _ in images]
     assert log_times == sorted(log_times)
-    text = TS.deserialize_cdr(status[0][1], STRING_MSGTYPE).data
+    msg: Any = TS.deserialize_cdr(status[0][1], STRING_MSGTYPE)  # rosbags returns untyped messages
+    text = msg.data
     assert json.loads(text) == {"state": "tracking", "frames": 5}
 
 
@@ -193,8 +195,8 @@ def test_restamp_changes_only_the_stamp() -> None:
         assert frame.stamp_us == 1_700_000_000_654_321
         np.testing.assert_array_equal(frame.image, img)
     comp = encode_compressed(img, 5_000_000, "cam")
-    msg = TS.deserialize_cdr(restamp_cdr(comp, 7_000_001), "sensor_msgs/msg/CompressedImage")
-    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (7, 1000)
+    cmsg: Any = TS.deserialize_cdr(restamp_cdr(comp, 7_000_001), "sensor_msgs/msg/CompressedImage")
+    assert (cmsg.header.stamp.sec, cmsg.header.stamp.nanosec) == (7, 1000)
 
 
 @pytest.mark.parametrize("storage", [StoragePlugin.SQLITE3, StoragePlugin.MCAP], ids=["sqlite3", "mcap"])
@@ -446,7 +448,7 @@ os._exit(0)
     store = get_typestore(Stores.ROS2_HUMBLE)  # a reader that knows the types from the bag alone
     found = get_types_from_msg(conn.msgdef.data, conn.msgtype)
     store.register({k: v for k, v in found.items() if k not in store.types})
-    last = store.deserialize_cdr(bytes(msgs[-1][2]), conn.msgtype)
+    last: Any = store.deserialize_cdr(bytes(msgs[-1][2]), conn.msgtype)
     assert len(msgs) == n and msgs[-1][1] == 10**18 + n - 1
     assert (
         last.range_m == (n - 1) * 0.5 and last.quality.value == (n - 1) % 7 and last.header.stamp.sec == n - 1

@@ -11,6 +11,12 @@ from companion.io.timesync import TimeSync, TimeSyncOptions
 OFFSET_US = 4_321_000 - 1_700_000_000_000_000  # autopilot boot clock - Unix-epoch companion clock
 
 
+def offset(sync: TimeSync) -> int:
+    """The synced offset (autopilot minus companion, us); fails the test when there is none."""
+    assert sync.offset_us is not None, "not synced"
+    return sync.offset_us
+
+
 def exchange(sync: TimeSync, t0_us: int, up_us: int, down_us: int, offset_us: int = OFFSET_US) -> None:
     """One request/reply round trip with the given one-way delays (companion clock)."""
     tc1, ts1 = sync.make_request(t0_us)
@@ -29,10 +35,10 @@ def test_converges_within_rtt_bound_despite_asymmetric_delays() -> None:
         exchange(sync, t, up, down)
         t += 200_000
         if sync.synced:
-            errors.append(abs(sync.offset_us - OFFSET_US))
+            errors.append(abs(offset(sync) - OFFSET_US))
     assert sync.synced
     assert max(errors[-40:]) < 1_000  # min-RTT choice: bound is rtt_min / 2, well under 2 ms
-    assert sync.to_autopilot_us(t) == t + sync.offset_us
+    assert sync.to_autopilot_us(t) == t + offset(sync)
 
 
 def test_converges_fast_at_start() -> None:
@@ -41,7 +47,7 @@ def test_converges_fast_at_start() -> None:
     for i in range(3):
         assert not sync.synced
         exchange(sync, t + i * 100_000, 400, 600)
-    assert sync.synced and abs(sync.offset_us - OFFSET_US) <= 100
+    assert sync.synced and abs(offset(sync) - OFFSET_US) <= 100
 
 
 def test_slow_replies_are_rejected_and_do_not_move_the_estimate() -> None:
@@ -71,14 +77,14 @@ def test_reboot_jump_resets_and_flags_but_one_outlier_does_not() -> None:
     t += 1_000_000
     exchange(sync, t, 300, 300, offset_us=OFFSET_US + 9_000_000)  # one corrupt reply
     exchange(sync, t + 100_000, 300, 300)
-    assert not sync.consume_reset() and abs(sync.offset_us - OFFSET_US) < 100
+    assert not sync.consume_reset() and abs(offset(sync) - OFFSET_US) < 100
     resets_before = sync.resets
     new_offset = OFFSET_US - 45_000_000  # rebooted: its clock restarted near zero
     for i in range(2, 6):
         exchange(sync, t + i * 100_000, 300, 300, offset_us=new_offset)
     assert sync.consume_reset() and not sync.consume_reset()
     assert sync.resets == resets_before + 1
-    assert abs(sync.offset_us - new_offset) < 100
+    assert abs(offset(sync) - new_offset) < 100
 
 
 def test_not_synced_maps_to_none() -> None:
@@ -101,5 +107,6 @@ def test_mapping_depends_on_each_stamp_only(stamps: list[int], keep: list[bool])
     all_mapped = {s: sync.to_autopilot_us(s) for s in stamps}
     kept = [s for s, k in zip(stamps, keep) if k]
     for s in reversed(kept):  # late / out of order / with gaps
-        assert sync.to_autopilot_us(s) == all_mapped[s] == s + sync.offset_us
-        assert sync.to_companion_us(all_mapped[s]) == s
+        assert sync.to_autopilot_us(s) == all_mapped[s] == s + offset(sync)
+        mapped = all_mapped[s]
+        assert mapped is not None and sync.to_companion_us(mapped) == s

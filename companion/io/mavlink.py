@@ -110,7 +110,7 @@ def quaternion_from_rpy(rpy_rad: np.ndarray) -> np.ndarray:
     return Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_quat(scalar_first=True)
 
 
-def rpy_from_quaternion(q_wxyz: Sequence[float]) -> np.ndarray:
+def rpy_from_quaternion(q_wxyz: Sequence[float] | np.ndarray) -> np.ndarray:
     """(w, x, y, z) -> (3,) roll, pitch, yaw (intrinsic ZYX)."""
     yaw, pitch, roll = Rotation.from_quat(np.asarray(q_wxyz, dtype=float), scalar_first=True).as_euler("ZYX")
     return np.array([roll, pitch, yaw])
