@@ -470,7 +470,13 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="with --runs-log: keep the trials already in the log and run only the missing ones",
     )
-    p.add_argument("--from-runs", type=Path, default=None, help="summarise a runs log instead of running")
+    p.add_argument(
+        "--from-runs",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="summarise runs logs instead of running (several: pooled, e.g. two --seed runs)",
+    )
     p.add_argument(
         "--trials-wall-s", type=float, default=None, help="with --from-runs: wall time of those runs"
     )
@@ -514,7 +520,9 @@ def main(argv: list[str] | None = None) -> int:
         n_resumed = len(results)
         print(f"resuming: {n_resumed} trials from {a.runs_log}, {len(jobs)} to run", flush=True)
     if a.from_runs is not None:
-        results = [json.loads(line) for line in a.from_runs.read_text().splitlines() if line.strip()]
+        results = [
+            json.loads(line) for f in a.from_runs for line in f.read_text().splitlines() if line.strip()
+        ]
         names = [n for n in names if any(r["name"] == n for r in results)]
         trials = max(sum(r["name"] == n for r in results) for n in names)
     elif a.workers > 1:
@@ -624,6 +632,7 @@ def main(argv: list[str] | None = None) -> int:
             "E": "OLS slope (with intercept) of position-error norm vs distance travelled, percent",
             "cohens_d": "paired: mean(E_a - E_b) / std(E_a - E_b, ddof=1); positive = second better",
             "summarised_from_runs_log": a.from_runs is not None,
+            "runs_logs": [str(f) for f in a.from_runs] if a.from_runs is not None else [],
         },
         "trajectories": per,
         "average": avg,
