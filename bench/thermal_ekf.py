@@ -206,6 +206,15 @@ def bench_options(detect_scale: float | None = None, initial_attitude_deg: float
     return o
 
 
+def runs_seeds(results: list[dict[str, Any]]) -> int | list[int] | None:
+    """The bench seed(s) the runs were made with, as their records say: one seed, a sorted list when runs
+    logs of several seeds are pooled, None when a record does not say (logs written before it was kept)."""
+    if not results or any(r.get("seed") is None for r in results):
+        return None
+    ordered = sorted({int(r["seed"]) for r in results})
+    return ordered[0] if len(ordered) == 1 else ordered
+
+
 def run_trial(
     name: str,
     trial: int,
@@ -257,7 +266,7 @@ def run_trial(
     dist = np.interp(t_frames, tt, cum)
     truth = np.stack([s.p_world for s in states])
     intr = cams.intrinsics
-    out: dict[str, Any] = {"name": name, "trial": trial, "distance_m": float(dist[-1])}
+    out: dict[str, Any] = {"name": name, "trial": trial, "seed": seed, "distance_m": float(dist[-1])}
     for cfg, (mode, sampling) in CONFIGS.items():
         opts = replace(base, seed=tseed, mode=mode, sampling=sampling)
         est = VisThermalEkfEstimator(
@@ -622,7 +631,7 @@ def main(argv: list[str] | None = None) -> int:
             "imu_hz": IMU_HZ,
             "altimeter_hz": ALTIMETER_HZ,
             "world_seed": WORLD_SEED,
-            "seed": a.seed,
+            "seed": a.seed if a.from_runs is None else runs_seeds(results),
             "detect_scale": BENCH_OPTIONS.detect_scale if a.detect_scale is None else a.detect_scale,
             "initial_attitude_sigma_deg": (
                 INITIAL_ATTITUDE_DEG if a.initial_attitude_deg is None else a.initial_attitude_deg

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.stats import ttest_rel
 
-from bench.thermal_ekf import holm_adjusted, improvement, improvement_bootstrap, paired_worse
+from bench.thermal_ekf import holm_adjusted, improvement, improvement_bootstrap, paired_worse, runs_seeds
 
 
 def test_paired_worse_is_scipys_one_sided_paired_t() -> None:
@@ -68,3 +68,11 @@ def test_improvement_interval_covers_the_estimate_and_narrows_with_trials() -> N
         widths.append(hi - lo)
     # the interval's width falls as 1 / sqrt(trials): 4x narrower for 16x the trials (loose margins)
     assert 2.5 < widths[0] / widths[1] < 6.5
+
+
+def test_runs_seeds_reports_what_the_records_say() -> None:
+    """A summary of pooled runs logs names every seed; a log without seeds is not labelled with a guess."""
+    assert runs_seeds([{"seed": 1}, {"seed": 1}]) == 1
+    assert runs_seeds([{"seed": 1}, {"seed": 0}, {"seed": 1}]) == [0, 1]
+    assert runs_seeds([{"seed": 0}, {"name": "1"}]) is None
+    assert runs_seeds([]) is None
