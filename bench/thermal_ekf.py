@@ -240,7 +240,7 @@ def run_trial(
     states = traj.states(t_frames)
     # render + SIFT once; the same detections feed every configuration (timed for pairs_per_s)
     base = bench_options(detect_scale, initial_attitude_deg)
-    det = {c: SiftDetector(base) for c in ("visible", "thermal")}
+    det = {c: SiftDetector(base, c) for c in ("visible", "thermal")}
     frames = []
     t_render = t_sift = 0.0
     for i, st in enumerate(states):

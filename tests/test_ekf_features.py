@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from companion.ekf.features import Detections, SiftDetector, match_predicted, to_uint8
 from companion.ekf.options import EkfOptions
@@ -34,7 +35,7 @@ def test_to_uint8_stretches_thermal_counts_robustly():
 def test_sift_detects_and_scales_back():
     img = (255 * _texture(2)).astype(np.uint8)
     det = SiftDetector(EkfOptions(detect_scale=1.0)).detect(img)
-    assert 150 <= len(det) <= EkfOptions().sift_nfeatures
+    assert 150 <= len(det) <= EkfOptions().sift_nfeatures_visible
     assert det.desc.shape == (len(det), 128) and det.desc.dtype == np.float32
     half = SiftDetector(EkfOptions(detect_scale=0.5)).detect(img)
     assert len(half) > 50
@@ -78,3 +79,18 @@ def test_matching_gate_ratio_and_one_to_one():
     # two equally good candidates inside the gate: the ratio test refuses to choose
     det2 = Detections(det.uv[:2], np.stack([desc[0], desc[0]]))
     assert match_predicted(pred[:1], S[:1], desc[:1], det2, 9.21, 250.0, 0.85).tolist() == [-1]
+
+
+def test_each_camera_gets_its_own_sift_settings():
+    """The thermal detector's lower contrast threshold finds more keypoints in a faint image than the visible
+    settings do; each camera's keypoint cap holds; an unknown camera is refused."""
+    faint = (110 + 60 * _texture(4)).astype(np.uint8)
+    opts = EkfOptions(detect_scale=1.0, sift_nfeatures_visible=2000, sift_nfeatures_thermal=2000)
+    n_vis = len(SiftDetector(opts, "visible").detect(faint))
+    n_tir = len(SiftDetector(opts, "thermal").detect(faint))
+    assert n_vis > 0 and n_tir > 5 * n_vis
+    capped = EkfOptions(detect_scale=1.0, sift_nfeatures_visible=60, sift_nfeatures_thermal=40)
+    assert len(SiftDetector(capped, "visible").detect(faint)) <= 60
+    assert len(SiftDetector(capped, "thermal").detect(faint)) <= 40
+    with pytest.raises(ValueError, match="camera"):
+        SiftDetector(opts, "lidar")

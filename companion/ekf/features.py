@@ -1,9 +1,10 @@
 """SIFT detection and prediction-guided matching (paper 2 section 3.2). No cross-modal matching:
 each camera's landmarks are matched only against that camera's keypoints.
 
-SIFT is OpenCV's ``cv2.SIFT.create`` (= ``cv2.SIFT_create``) with the settings in ``EkfOptions`` (sift_*): 400 keypoints per
-image ranked by contrast, 3 layers per octave (Lowe), contrast threshold 0.02 (half OpenCV's 0.04,
-because icy scenes are low in contrast), edge threshold 10 and sigma 1.6 (OpenCV / Lowe defaults).
+SIFT is OpenCV's ``cv2.SIFT.create`` (= ``cv2.SIFT_create``) with the settings in ``EkfOptions`` (sift_*), per
+camera: the best 800 (visible) / 400 (thermal) keypoints by contrast, contrast threshold 0.02 (visible; half
+OpenCV's 0.04, because icy scenes are low in contrast) / 0.005 (thermal: the diffused temperature field is
+smoother still), 3 layers per octave (Lowe), edge threshold 10 and sigma 1.6 (OpenCV / Lowe defaults).
 Visible frames are used as they come (8-bit grey; the paper applies no other pre-processing).
 Thermal frames (uint16 counts) are stretched per frame to 8 bit between the 1st and 99th percentile
 (``to_uint8``): robust to a few dead or hot pixels and independent of the camera's absolute scale.
@@ -50,14 +51,16 @@ def to_uint8(image: np.ndarray, low_percentile: float = 1.0, high_percentile: fl
 
 
 class SiftDetector:
-    """One SIFT instance per camera (OpenCV detectors keep buffers; do not share between threads)."""
+    """One SIFT instance per camera (OpenCV detectors keep buffers; do not share between threads), with that
+    camera's settings (``EkfOptions.sift_settings``)."""
 
-    def __init__(self, options: EkfOptions) -> None:
+    def __init__(self, options: EkfOptions, camera: str = "visible") -> None:
         o = options
+        nfeatures, contrast = o.sift_settings(camera)
         self._sift = cv2.SIFT.create(
-            nfeatures=o.sift_nfeatures,
+            nfeatures=nfeatures,
             nOctaveLayers=o.sift_octave_layers,
-            contrastThreshold=o.sift_contrast_threshold,
+            contrastThreshold=contrast,
             edgeThreshold=o.sift_edge_threshold,
             sigma=o.sift_sigma,
         )

@@ -95,7 +95,7 @@ class VisThermalEkfEstimator:
             )
         self._models = models
         self.slam = VisThermalSlam(options, models, gravity_mps2)
-        self._detectors = {c: SiftDetector(options) for c in self.cameras}
+        self._detectors = {c: SiftDetector(options, c) for c in self.cameras}
         self._pool = ThreadPoolExecutor(max_workers=len(self.cameras)) if len(self.cameras) > 1 else None
         self._p0 = None if initial_p_world is None else np.asarray(initial_p_world, float).copy()
         self._v0 = None if initial_v_world is None else np.asarray(initial_v_world, float).copy()
