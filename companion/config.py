@@ -141,6 +141,12 @@ class EkfConfig(_Strict):
     ransac_threshold_px: Annotated[float, Field(gt=0)] = 0.5
     # match a landmark against the descriptor it was created with (false: the last matched keypoint's)
     anchor_descriptor: bool = True
+    # SIFT per camera: keypoints kept per image (best by contrast) and the contrast threshold; set from your
+    # cameras (a faint, smooth thermal image wants a lower threshold)
+    sift_nfeatures_visible: Annotated[int, Field(ge=10, le=5000)] = 800
+    sift_nfeatures_thermal: Annotated[int, Field(ge=10, le=5000)] = 400
+    sift_contrast_threshold_visible: Annotated[float, Field(gt=0, lt=1)] = 0.02
+    sift_contrast_threshold_thermal: Annotated[float, Field(gt=0, lt=1)] = 0.005
 
 
 class EstimatorConfig(_Strict):

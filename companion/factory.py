@@ -86,6 +86,10 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             one_point_ransac=e.one_point_ransac,
             ransac_threshold_px=e.ransac_threshold_px,
             anchor_descriptor=e.anchor_descriptor,
+            sift_nfeatures_visible=e.sift_nfeatures_visible,
+            sift_nfeatures_thermal=e.sift_nfeatures_thermal,
+            sift_contrast_threshold_visible=e.sift_contrast_threshold_visible,
+            sift_contrast_threshold_thermal=e.sift_contrast_threshold_thermal,
         )
         planet = cfg.origin.planet if cfg.origin is not None else "europa"
         p0 = cfg.estimator.initial_position_ned_m

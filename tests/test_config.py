@@ -83,6 +83,10 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         "one_point_ransac": False,
         "ransac_threshold_px": 0.8,
         "anchor_descriptor": False,
+        "sift_nfeatures_visible": 500,
+        "sift_nfeatures_thermal": 300,
+        "sift_contrast_threshold_visible": 0.03,
+        "sift_contrast_threshold_thermal": 0.01,
     }
     assert set(changed) | {"pair_tolerance_ms"} == set(EkfConfig.model_fields)  # a new key must join here
     cfg = parse_config(
