@@ -82,10 +82,10 @@ class EkfOptions:
     kde_min_bandwidth_px: float = 16.0  # px, floor of the Scott's-rule kernel width (cap: ``sampling``)
     # --- SIFT (cv2.SIFT_create) ---
     # keypoints kept per image (best by contrast) and the contrast threshold, per camera. More keypoints per
-    # image let a landmark's keypoint be found again in the next frame more often (longer tracks): on 89 cached
-    # benchmark trials, paired against 400 / 0.02 for both, visible at 800 lowered E by 0.098 +- 0.027 points,
-    # thermal at 0.005 (its keypoints are contrast-limited, ~300 per frame at 0.02) by 0.028 +- 0.017, dual
-    # with both by 0.045 +- 0.018 (README)
+    # image let a landmark's keypoint be found again in the next frame more often (longer tracks). On the
+    # 300-trial benchmark, paired against 400 / 0.02 for both cameras (thermal's keypoints were contrast-limited,
+    # ~300 a frame): E lower by 0.073 +- 0.016 / 0.036 +- 0.010 / 0.033 +- 0.010 points visible / thermal /
+    # dual, SIFT 43 instead of 34 ms per pair (README)
     sift_nfeatures_visible: int = 800
     sift_nfeatures_thermal: int = 400
     sift_octave_layers: int = 3  # Lowe's value
