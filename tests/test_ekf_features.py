@@ -34,13 +34,13 @@ def test_to_uint8_stretches_thermal_counts_robustly():
 
 def test_sift_detects_and_scales_back():
     img = (255 * _texture(2)).astype(np.uint8)
-    det = SiftDetector(EkfOptions(detect_scale=1.0)).detect(img)
+    det = SiftDetector(EkfOptions(detect_scale=1.0), "visible").detect(img)
     assert 150 <= len(det) <= EkfOptions().sift_nfeatures_visible
     assert det.desc.shape == (len(det), 128) and det.desc.dtype == np.float32
-    half = SiftDetector(EkfOptions(detect_scale=0.5)).detect(img)
+    half = SiftDetector(EkfOptions(detect_scale=0.5), "visible").detect(img)
     assert len(half) > 50
     assert half.uv[:, 0].max() > 500 and half.uv[:, 1].max() > 380  # pixels in full-resolution units
-    blank = SiftDetector(EkfOptions()).detect(np.zeros((480, 640), np.uint8))
+    blank = SiftDetector(EkfOptions(), "visible").detect(np.zeros((480, 640), np.uint8))
     assert len(blank) == 0 and blank.desc.shape == (0, 128)
 
 
@@ -50,7 +50,7 @@ def test_active_search_recovers_a_known_shift():
     shift = np.array([7.0, -4.0])
     M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
     img2 = cv2.warpAffine(img, M, (640, 480), borderMode=cv2.BORDER_REFLECT)
-    sift = SiftDetector(EkfOptions())
+    sift = SiftDetector(EkfOptions(), "visible")
     d1, d2 = sift.detect(img), sift.detect(img2)
     keep = (d1.uv[:, 0] > 20) & (d1.uv[:, 0] < 610) & (d1.uv[:, 1] > 20) & (d1.uv[:, 1] < 460)
     lm_uv, lm_desc = d1.uv[keep][:40], d1.desc[keep][:40]

@@ -54,7 +54,7 @@ class SiftDetector:
     """One SIFT instance per camera (OpenCV detectors keep buffers; do not share between threads), with that
     camera's settings (``EkfOptions.sift_settings``)."""
 
-    def __init__(self, options: EkfOptions, camera: str = "visible") -> None:
+    def __init__(self, options: EkfOptions, camera: str) -> None:
         o = options
         nfeatures, contrast = o.sift_settings(camera)
         self._sift = cv2.SIFT.create(
