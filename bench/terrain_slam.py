@@ -326,6 +326,11 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="geo-fixes without the matcher's joint_shift option (terrain_lba's default has it)",
     )
+    p.add_argument(
+        "--no-terrain-term",
+        action="store_true",
+        help="the adjustment without the landmark-on-DEM term (terrain_lba's default has it)",
+    )
     a = p.parse_args(argv)
     circ_s = a.circular_s or (30.0 if a.quick else 190.0)
     fwd_s = a.forward_s or (40.0 if a.quick else 110.0)
@@ -336,6 +341,8 @@ def main(argv: list[str] | None = None) -> int:
     base = replace(TerrainLbaOptions(), backend_apply="fixed_delay")
     if a.no_joint_shift:
         base = replace(base, georef=replace(base.georef, joint_shift=False))
+    if a.no_terrain_term:
+        base = replace(base, terrain_sigma_m=0.0)
     lba = replace(base, w_geo=10.0)
     vo = replace(base, w_geo=0.0)
     t_start = time.perf_counter()
@@ -352,7 +359,13 @@ def main(argv: list[str] | None = None) -> int:
             )
         return flights[key]
 
-    results: dict[str, Any] = {"quick": a.quick, "seed": a.seed, "joint_shift": base.georef.joint_shift}
+    results: dict[str, Any] = {
+        "quick": a.quick,
+        "seed": a.seed,
+        "joint_shift": base.georef.joint_shift,
+        "terrain_sigma_m": base.terrain_sigma_m,
+        "terrain_sigma_horizontal_m": base.terrain_sigma_horizontal_m,
+    }
     # scene 08 circular carries Table 4's confidences and both methods of Tables 5 and 7
     if tables & {"4", "5", "7"} and ("08" in scenes or tables & {"4", "5"}):
         methods = {f"w{c:g}": replace(base, w_geo=c) for c in (confidences if "4" in tables else (0.0, 10.0))}

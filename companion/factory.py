@@ -61,6 +61,8 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             min_frames_between_kf=t.min_frames_between_kf,
             min_features_kf=t.min_features_kf,
             max_tracked_ratio_kf=t.max_tracked_ratio_kf,
+            terrain_sigma_m=t.terrain_sigma_m,
+            terrain_sigma_horizontal_m=t.terrain_sigma_horizontal_m,
         )
         lba_opt = replace(lba_opt, georef=replace(lba_opt.georef, joint_shift=t.joint_shift))
         return TerrainLbaEstimator(

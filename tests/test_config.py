@@ -103,6 +103,50 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         est.close()
 
 
+def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> None:
+    """Each [estimator.terrain_lba] key set away from its default arrives in the estimator's options (and
+    the adjustment's, for the ones it passes on)."""
+    import numpy as np
+
+    from companion.config import TerrainLbaConfig
+    from companion.factory import build_estimator
+    from companion.georef.dem import Dem
+    from companion.io.dem_store import save_dem_npz
+
+    changed = {
+        "window_size": 12,
+        "w_geo": 5.0,
+        "min_frames_between_kf": 15,
+        "min_features_kf": 60,
+        "max_tracked_ratio_kf": 0.8,
+        "joint_shift": False,
+        "terrain_sigma_m": 0.7,
+        "terrain_sigma_horizontal_m": 0.3,
+    }
+    assert set(changed) == set(TerrainLbaConfig.model_fields)  # a new key must join here
+    dem_path = tmp_path / "dem.npz"
+    save_dem_npz(dem_path, Dem(np.zeros((50, 50), np.float32), 25.0, -25.0, 1.0))
+    cfg = parse_config(
+        {
+            "cameras": {"nadir": {"key": "k"}},
+            "dem": {"path": str(dem_path)},
+            "estimator": {"kind": "terrain_lba", "terrain_lba": changed},
+        }
+    )
+    est = build_estimator(cfg)
+    try:
+        opt = est.opt  # type: ignore[attr-defined]
+        lba = opt.backend.lba
+        for key, value in changed.items():
+            if key == "joint_shift":
+                assert opt.georef.joint_shift is value
+            else:
+                assert getattr(opt, key) == value, key
+        assert (lba.w_geo, lba.terrain_sigma_m, lba.terrain_sigma_horizontal_m) == (5.0, 0.7, 0.3)
+    finally:
+        est.close()
+
+
 def test_cli_exits_2_with_a_clear_message(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('[cameras.nadir]\nkey = "k"\nwidht = 480\n[dem]\npath = "d.npz"\n')

@@ -14,8 +14,9 @@ from gtsam.utils.numerical_derivative import numericalDerivative11
 
 from companion.constants import R_BODY_CAM_NADIR
 from companion.geometry import CameraIntrinsics, make_T, rot_from_rpy
+from companion.georef.dem import Dem
 from companion.lba.align import align_yaw_translation
-from companion.lba.backend import Backend, BackendJob, BackendOptions
+from companion.lba.backend import Backend, BackendJob, BackendOptions, ground_below
 from companion.lba.window import LbaOptions, WindowProblem, body_covariance, geo_factor, solve_window
 from companion.vo.geometry import reproject
 from companion.vo.odometry import WindowSnapshot
@@ -265,3 +266,62 @@ def test_kernels_accepted(kernel):
         _problem(T, P, ok, ol, opx, rng), LbaOptions(reprojection_kernel=kernel, geo_kernel=kernel)
     )
     assert sol.ok
+
+
+def _wavy_dem() -> Dem:
+    """Analytic ground h = 6 sin(2 pi e / 40) cos(2 pi n / 55) + 0.05 n on a 1 m grid around the window."""
+    n = 80.0 - np.arange(0.0, 200.0)
+    e = np.arange(-80.0, 200.0)
+    h = (
+        6.0 * np.sin(2 * np.pi * e[None, :] / 40.0) * np.cos(2 * np.pi * n[:, None] / 55.0)
+        + 0.05 * n[:, None]
+    )
+    return Dem(h.astype(np.float32), 80.0, -80.0, 1.0)
+
+
+def test_ground_below_gives_heights_slopes_and_nan_in_holes():
+    dem = _wavy_dem()
+    p = np.array([[10.3, 20.7, -50.0], [-30.2, 55.1, 0.0], [0.0, 500.0, 0.0]])
+    g = ground_below(dem, p)
+    n, e = p[:2, 0], p[:2, 1]
+    h = 6.0 * np.sin(2 * np.pi * e / 40.0) * np.cos(2 * np.pi * n / 55.0) + 0.05 * n
+    dh_dn = -6.0 * np.sin(2 * np.pi * e / 40.0) * np.sin(2 * np.pi * n / 55.0) * 2 * np.pi / 55.0 + 0.05
+    dh_de = 6.0 * np.cos(2 * np.pi * e / 40.0) * np.cos(2 * np.pi * n / 55.0) * 2 * np.pi / 40.0
+    np.testing.assert_allclose(g[:2, 2], -h, atol=0.05)  # bilinear on a 1 m grid
+    np.testing.assert_allclose(g[:2, 3], dh_dn, atol=0.03)
+    np.testing.assert_allclose(g[:2, 4], dh_de, atol=0.03)
+    assert np.all(np.isnan(g[2, 2:]))  # off the DEM
+
+
+def test_terrain_term_pulls_a_shifted_window_back_onto_the_dem():
+    """A window drifted 1.5 m east and 1 m down over sloping ground, no geo-fixes: with landmarks tied to
+    the DEM, the heights and the slopes bring it back; without, it stays where the VO put it."""
+    dem = _wavy_dem()
+    T, P, ok, ol, opx, rng = _scene(5)
+    P = P.copy()
+    P[:, 2] = -dem.height_at(P[:, 0], P[:, 1])  # the landmarks on the ground
+    # re-measure the pixels of the landmarks at their new heights
+    opx = np.stack([reproject(K, T[i], P[j : j + 1])[0][0] for i, j in zip(ok, ol)])
+    opx += 0.3 * rng.standard_normal(opx.shape)
+    prob = _problem(T, P, ok, ol, opx, rng, perturb=False)
+    shift = np.array([0.0, 1.5, 1.0])
+    Ts = prob.T_world_cam.copy()
+    Ts[:, :3, 3] += shift
+    cov = np.diag([1e-4] * 3 + [9.0] * 3)  # anchors: rotation known, position loose
+    prob = replace(
+        prob,
+        T_world_cam=Ts,
+        p_world=prob.p_world + shift,
+        anchor_cov=np.tile(cov, (len(Ts), 1, 1)),
+        geo_p_world=np.full_like(prob.geo_p_world, np.nan),
+    )
+    prob = replace(prob, lm_ground=ground_below(dem, prob.p_world))
+    off = solve_window(prob, LbaOptions(w_geo=10.0))
+    on = solve_window(prob, LbaOptions(w_geo=10.0, terrain_sigma_m=0.3))
+    err_off = np.linalg.norm(off.T_world_cam[:, :3, 3] - T[:, :3, 3], axis=1).mean()
+    err_on = np.linalg.norm(on.T_world_cam[:, :3, 3] - T[:, :3, 3], axis=1).mean()
+    assert err_off > 1.4
+    assert err_on < 0.3
+    # no term without ground rows, and a NaN row is skipped
+    none = solve_window(replace(prob, lm_ground=None), LbaOptions(w_geo=10.0, terrain_sigma_m=0.3))
+    np.testing.assert_allclose(none.T_world_cam, off.T_world_cam, atol=1e-9)

@@ -64,6 +64,10 @@ RESTART_BACKOFF_S = 5.0  # a replacement worker that failed to start is retried 
 class TerrainLbaOptions:
     window_size: int = 15  # key frames in the sliding window of the adjustment (paper: 15)
     w_geo: float = 10.0  # eq. 23 confidence w_G of the geo-referencing term (Table 4: 10); 0 = VO only
+    # landmark-on-DEM term of the adjustment (``LbaOptions.terrain_sigma_m``): the DEM's vertical and
+    # horizontal error (m); 0 = off. Only once the map is aligned to the world (position and yaw).
+    terrain_sigma_m: float = 0.5
+    terrain_sigma_horizontal_m: float = 0.5
     min_frames_between_kf: int = 20  # key-frame criterion 1 (paper / ORB-SLAM)
     min_features_kf: int = 50  # key-frame criterion 2
     max_tracked_ratio_kf: float = 0.9  # key-frame criterion 3
@@ -98,7 +102,12 @@ class TerrainLbaOptions:
             min_features=self.min_features_kf,
             max_tracked_ratio=self.max_tracked_ratio_kf,
         )
-        lba: LbaOptions = replace(self.backend.lba, w_geo=self.w_geo)
+        lba: LbaOptions = replace(
+            self.backend.lba,
+            w_geo=self.w_geo,
+            terrain_sigma_m=self.terrain_sigma_m,
+            terrain_sigma_horizontal_m=self.terrain_sigma_horizontal_m,
+        )
         return replace(
             self,
             vo=replace(self.vo, keyframes=kf),
@@ -108,6 +117,7 @@ class TerrainLbaOptions:
 
 def _make_backend(options: BackendOptions, geo_args: tuple | None) -> Backend:
     locate = None
+    terrain = None
     if geo_args is not None and options.lba.w_geo > 0:
         dem, sun, intrinsics, R_body_cam, georef_options = geo_args
         geo = GeoReferencer(dem, sun, intrinsics, R_body_cam, georef_options)
@@ -115,7 +125,13 @@ def _make_backend(options: BackendOptions, geo_args: tuple | None) -> Backend:
         def locate(image, R_world_body, p_pred_world, alt_agl_m):  # noqa: ANN001, ANN202
             return geo.locate(image, R_world_body, p_pred_world, alt_agl_m)
 
-    return Backend(options, locate)
+        # the landmark-on-DEM term reads the matcher's smoothed, hole-filled DEM (its noise would be
+        # slopes), holes put back
+        h = geo.ref.height_m.copy()
+        h[geo.ref.holes > 0] = np.nan
+        terrain = Dem(h, dem.north0_m, dem.east0_m, dem.cell_m)
+
+    return Backend(options, locate, terrain)
 
 
 def _worker_main(conn: Any, options: BackendOptions, geo_args: tuple | None) -> None:

@@ -18,12 +18,25 @@ from typing import Any
 
 import numpy as np
 
+from companion.georef.dem import Dem
 from companion.lba.align import align_yaw_translation
 from companion.lba.window import LbaOptions, WindowProblem, solve_window
 from companion.vo.odometry import WindowSnapshot
 
 Locator = Callable[[np.ndarray, np.ndarray, np.ndarray, float | None], Any]
 """``locate(image, R_world_body, p_pred_world, alt_agl_m) -> GeoFix`` (companion.georef.georef)."""
+
+
+def ground_below(dem: Dem, p_world: np.ndarray) -> np.ndarray:
+    """(N, 5) per NED point: north, east, down of the DEM surface below it and the slopes dh/dn, dh/de
+    (central differences over one cell); NaN rows off the DEM or in its holes."""
+    p = np.asarray(p_world, float).reshape(-1, 3)
+    n, e = p[:, 0], p[:, 1]
+    d = 0.5 * dem.cell_m
+    h = dem.height_at(n, e)
+    dh_dn = (dem.height_at(n + d, e) - dem.height_at(n - d, e)) / (2 * d)
+    dh_de = (dem.height_at(n, e + d) - dem.height_at(n, e - d)) / (2 * d)
+    return np.stack([n, e, -h, dh_dn, dh_de], axis=1)
 
 
 @dataclass(frozen=True)
@@ -119,11 +132,13 @@ def _transform_snapshot(s: WindowSnapshot, T: np.ndarray) -> WindowSnapshot:
 
 
 class Backend:
-    """Stateful back-end; one per flight. ``locate`` may be None (VO only: no geo-referencing)."""
+    """Stateful back-end; one per flight. ``locate`` may be None (VO only: no geo-referencing).
+    ``terrain``: the DEM of the landmark-on-DEM term (``LbaOptions.terrain_sigma_m``), None = no term."""
 
-    def __init__(self, options: BackendOptions, locate: Locator | None) -> None:
+    def __init__(self, options: BackendOptions, locate: Locator | None, terrain: Dem | None = None) -> None:
         self.opt = options
         self.locate = locate if options.lba.w_geo > 0 else None
+        self.terrain = terrain if options.lba.terrain_sigma_m > 0 else None
         self.counters = {
             "keyframes": 0,
             "lba_runs": 0,
@@ -316,6 +331,10 @@ class Backend:
             geo_lever_cam=geo_lever,
             geo_cov=geo_cov,
             down_cam=s.down_cam,
+            # the map must be in the world (position and yaw) before its points can be put on the DEM
+            lm_ground=ground_below(self.terrain, s.p_world)
+            if self.terrain is not None and self.yaw_aligned
+            else None,
         )
         sol = solve_window(problem, self.opt.lba)
         self.counters["lba_runs"] += 1

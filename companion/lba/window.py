@@ -12,7 +12,14 @@ Cost (eq. 23), written as GTSAM factors:
 - gravity: ``AttitudeFactorPose3`` per key frame: the down direction measured by the autopilot's
   attitude (roll and pitch; yaw is left free, a compass bias must not enter);
 - key frames outside the window that see the window's points ("anchors", as ORB-SLAM's fixed key
-  frames) are held by a pose prior with their last marginal covariance (or pinned when none is known).
+  frames) are held by a pose prior with their last marginal covariance (or pinned when none is known);
+- terrain height (optional, ``terrain_sigma_m`` > 0; not in the paper): each landmark lies on the DEM.
+  The surface z + h(n, e) = 0 (NED) is linearised at the landmark's initial position, so the factor is a
+  ``PriorFactorPoint3`` whose information g g^T / sigma^2 (g = (dh/dn, dh/de, 1)) constrains only the
+  vertical misfit, sigma^2 = sigma_v^2 + |grad h|^2 sigma_h^2 (the usual DEM error model: a horizontal
+  error of the DEM is a height error on a slope): the map's heights, its tilt and, on sloping ground, its
+  horizontal position are then tied to the DEM's geometry, which the shading of the geo-fixes (albedo,
+  sun) does not bias.
 
 Poses are ``T_world_cam`` (4, 4); GTSAM's Pose3 tangent is (rotation, translation) in the camera frame.
 Pure math: numpy + gtsam.
@@ -49,6 +56,12 @@ class LbaOptions:
     outlier_chi2: float = 9.21  # after the solve, observations with whitened squared error above this
     # (2 dof, p = 0.01) are reported as outliers for the front-end to cull
     marginals: bool = True  # compute the key-frame marginal covariances
+    terrain_sigma_m: float = 0.0  # landmark-on-DEM term: vertical sigma (DEM error + the feature's height
+    # above the DEM surface); 0 = off
+    terrain_sigma_horizontal_m: float = 0.5  # the DEM's horizontal error: on a slope s it adds s x this to
+    # the vertical sigma (a steep wall's height is uncertain, and its linearisation poor)
+    terrain_kernel: str = "huber"
+    terrain_kernel_k: float = 1.345
 
 
 @dataclass(frozen=True)
@@ -65,6 +78,9 @@ class WindowProblem:
         point of the camera frame it locates (the body origin, or the ground point on the optical axis).
     geo_cov: (M, 3, 3) its covariance (m^2) before the w_G weighting.
     down_cam: (M, 3) gravity direction in the camera frame from the autopilot's attitude, NaN where none.
+    lm_ground: (L, 5) per landmark the DEM at its initial position: north, east, down of the surface point
+        below it and the surface slopes dh/dn, dh/de; NaN rows where none (off the DEM, in a hole). None: no
+        terrain term.
     """
 
     T_world_cam: np.ndarray
@@ -79,6 +95,7 @@ class WindowProblem:
     geo_lever_cam: np.ndarray
     geo_cov: np.ndarray
     down_cam: np.ndarray
+    lm_ground: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -167,7 +184,28 @@ def build_graph(
             geo_index[i] = graph.size()
             noise = geo_noise(problem.geo_cov[i], options.w_geo, options)
             graph.add(geo_factor(X(i), g, problem.geo_lever_cam[i], noise))
+    if options.terrain_sigma_m > 0 and problem.lm_ground is not None:
+        for jj in np.flatnonzero(np.all(np.isfinite(problem.lm_ground), axis=1)):
+            graph.add(terrain_factor(L(int(jj)), problem.lm_ground[jj], options))
     return graph, values, geo_index
+
+
+def terrain_factor(key: int, ground: np.ndarray, options: LbaOptions) -> gtsam.NonlinearFactor:
+    """A landmark on the DEM, linearised at (north, east) = ground[:2]: error g . (p - ground[:3]) with
+    g = (dh/dn, dh/de, 1), i.e. the landmark's down minus the surface's down there, to first order; its
+    variance sigma_v^2 + |grad h|^2 sigma_h^2 (``LbaOptions.terrain_sigma_m``, ``terrain_sigma_horizontal_m``).
+
+    Written as a Point3 prior whose information matrix has rank one (plus a negligible ridge that keeps it
+    positive definite for the Cholesky of the noise model): GTSAM's own factor in C++, no Python callback
+    per landmark and iteration."""
+    g = np.array([ground[3], ground[4], 1.0])
+    var = (
+        options.terrain_sigma_m**2 + (ground[3] ** 2 + ground[4] ** 2) * options.terrain_sigma_horizontal_m**2
+    )
+    info = np.outer(g, g) / var + np.eye(3) * 1e-8
+    base = gtsam.noiseModel.Gaussian.Information(info)
+    noise = robust(base, options.terrain_kernel, options.terrain_kernel_k)
+    return gtsam.PriorFactorPoint3(key, np.asarray(ground[:3], float), noise)
 
 
 def solve_window(problem: WindowProblem, options: LbaOptions = LbaOptions()) -> WindowSolution:
