@@ -291,6 +291,11 @@ def test_ground_below_gives_heights_slopes_and_nan_in_holes():
     np.testing.assert_allclose(g[:2, 3], dh_dn, atol=0.03)
     np.testing.assert_allclose(g[:2, 4], dh_de, atol=0.03)
     assert np.all(np.isnan(g[2, 2:]))  # off the DEM
+    holed = dem.height_m.copy()
+    r, c = (int(round(x)) for x in dem.rc_from_ne(10.3, 20.7))
+    holed[r - 1 : r + 2, c - 1 : c + 2] = np.nan
+    g = ground_below(Dem(holed, dem.north0_m, dem.east0_m, dem.cell_m), p[:2])
+    assert np.all(np.isnan(g[0, 2:])) and np.all(np.isfinite(g[1]))  # in a hole / beside none
 
 
 def test_terrain_term_pulls_a_shifted_window_back_onto_the_dem():
@@ -322,6 +327,9 @@ def test_terrain_term_pulls_a_shifted_window_back_onto_the_dem():
     err_on = np.linalg.norm(on.T_world_cam[:, :3, 3] - T[:, :3, 3], axis=1).mean()
     assert err_off > 1.4
     assert err_on < 0.3
-    # no term without ground rows, and a NaN row is skipped
+    # no term without ground rows, nor from NaN rows (landmarks off the DEM or over a hole)
     none = solve_window(replace(prob, lm_ground=None), LbaOptions(w_geo=10.0, terrain_sigma_m=0.3))
     np.testing.assert_allclose(none.T_world_cam, off.T_world_cam, atol=1e-9)
+    nan_rows = np.full_like(prob.lm_ground, np.nan)
+    nan = solve_window(replace(prob, lm_ground=nan_rows), LbaOptions(w_geo=10.0, terrain_sigma_m=0.3))
+    np.testing.assert_allclose(nan.T_world_cam, off.T_world_cam, atol=1e-9)
