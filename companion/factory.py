@@ -63,6 +63,7 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             max_tracked_ratio_kf=t.max_tracked_ratio_kf,
             terrain_sigma_m=t.terrain_sigma_m,
             terrain_sigma_horizontal_m=t.terrain_sigma_horizontal_m,
+            attitude_sigma_rad=t.attitude_sigma_rad,
         )
         lba_opt = replace(lba_opt, georef=replace(lba_opt.georef, joint_shift=t.joint_shift))
         return TerrainLbaEstimator(

@@ -122,6 +122,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         "joint_shift": False,
         "terrain_sigma_m": 0.7,
         "terrain_sigma_horizontal_m": 0.3,
+        "attitude_sigma_rad": 0.004,
     }
     assert set(changed) == set(TerrainLbaConfig.model_fields)  # a new key must join here
     dem_path = tmp_path / "dem.npz"
@@ -143,6 +144,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
             else:
                 assert getattr(opt, key) == value, key
         assert (lba.w_geo, lba.terrain_sigma_m, lba.terrain_sigma_horizontal_m) == (5.0, 0.7, 0.3)
+        assert lba.gravity_sigma_rad == 0.004
     finally:
         est.close()
 

@@ -68,6 +68,8 @@ class TerrainLbaOptions:
     # horizontal error (m); 0 = off. Only once the map is aligned to the world (position and yaw).
     terrain_sigma_m: float = 0.5
     terrain_sigma_horizontal_m: float = 0.5
+    # the adjustment's roll/pitch prior from the autopilot's attitude, 1 sigma (``LbaOptions.gravity_sigma_rad``)
+    attitude_sigma_rad: float = 0.003
     min_frames_between_kf: int = 20  # key-frame criterion 1 (paper / ORB-SLAM)
     min_features_kf: int = 50  # key-frame criterion 2
     max_tracked_ratio_kf: float = 0.9  # key-frame criterion 3
@@ -107,6 +109,7 @@ class TerrainLbaOptions:
             w_geo=self.w_geo,
             terrain_sigma_m=self.terrain_sigma_m,
             terrain_sigma_horizontal_m=self.terrain_sigma_horizontal_m,
+            gravity_sigma_rad=self.attitude_sigma_rad,
         )
         return replace(
             self,
