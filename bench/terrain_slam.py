@@ -365,6 +365,7 @@ def main(argv: list[str] | None = None) -> int:
         "joint_shift": base.georef.joint_shift,
         "terrain_sigma_m": base.terrain_sigma_m,
         "terrain_sigma_horizontal_m": base.terrain_sigma_horizontal_m,
+        "attitude_sigma_rad": base.attitude_sigma_rad,
     }
     # scene 08 circular carries Table 4's confidences and both methods of Tables 5 and 7
     if tables & {"4", "5", "7"} and ("08" in scenes or tables & {"4", "5"}):
