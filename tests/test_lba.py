@@ -177,6 +177,48 @@ class _Fix:
         self.ok, self.reason, self.p_world, self.quality = True, "", np.asarray(p, float), 0.5
 
 
+def _first_kfs_job(snap_all: WindowSnapshot, T: np.ndarray, k: int, held: bool = True) -> BackendJob:
+    """The back-end's job for key frame k of a flight whose map holds key frames 0..k (points seen twice
+    or more among them, as ``VisualOdometry.snapshot`` gives). held: keep the snapshot's anchors; False:
+    none, as at a real start (the back-end then holds the oldest itself)."""
+    sel = np.arange(k + 1)
+    m = np.isin(snap_all.obs_kf, sel)
+    seen = np.bincount(snap_all.obs_lm[m], minlength=len(snap_all.p_world)) >= 2
+    m &= seen[snap_all.obs_lm]
+    remap = np.cumsum(seen) - 1
+    snap = replace(
+        snap_all,
+        kf_ids=sel,
+        T_world_cam=T[sel],
+        anchor=snap_all.anchor[sel] if held else np.zeros(len(sel), bool),
+        down_cam=snap_all.down_cam[sel],
+        lm_ids=snap_all.lm_ids[seen],
+        p_world=snap_all.p_world[seen],
+        obs_kf=snap_all.obs_kf[m],
+        obs_lm=remap[snap_all.obs_lm[m]],
+        obs_px=snap_all.obs_px[m],
+    )
+    R_wb = T[k, :3, :3] @ R_BODY_CAM_NADIR.T
+    return BackendJob(
+        snap, k, np.zeros((4, 4), np.uint8), R_wb, T[k, :3, 3], 100.0, None, 6.0, np.zeros(3), K
+    )
+
+
+def test_first_window_marginals_are_expected_to_fail_and_not_counted():
+    """Key frames 0 and 1: one is held, the monocular scale is free, so the newest pose's marginal is
+    indeterminate by construction; from three key frames on (two held) it is determined. Only a failure
+    after that start is a failure."""
+    T, P, ok, ol, opx, _ = _scene(5)
+    snap_all = _snapshot(T, P, ok, ol, opx)
+    be = Backend(BackendOptions(lba=LbaOptions(w_geo=0.0)), None)
+    first = be.process(_first_kfs_job(snap_all, T, 1, held=False))
+    assert not np.all(np.isfinite(first.cov_newest))
+    assert first.counters["marginals_failed"] == 0
+    second = be.process(_first_kfs_job(snap_all, T, 2, held=False))
+    assert np.all(np.isfinite(second.cov_newest))
+    assert second.counters["marginals_failed"] == 0
+
+
 def test_backend_gates_a_bad_fix_and_counts_it():
     T, P, ok, ol, opx, rng = _scene(5)
     truth = {i: T[i, :3, 3] for i in range(len(T))}
@@ -190,32 +232,8 @@ def test_backend_gates_a_bad_fix_and_counts_it():
     be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0)), locate)
     snap_all = _snapshot(T, P, ok, ol, opx)
     for k in range(2, len(T)):
-        sel = np.arange(k + 1)
-        m = np.isin(snap_all.obs_kf, sel)
-        snap = replace(
-            snap_all,
-            kf_ids=sel,
-            T_world_cam=T[sel],
-            anchor=snap_all.anchor[sel],
-            down_cam=snap_all.down_cam[sel],
-            obs_kf=snap_all.obs_kf[m],
-            obs_lm=snap_all.obs_lm[m],
-            obs_px=snap_all.obs_px[m],
-        )
         current["k"] = k
-        job = BackendJob(
-            snap,
-            k,
-            np.zeros((4, 4), np.uint8),
-            T[k, :3, :3] @ R_BODY_CAM_NADIR.T,
-            T[k, :3, 3],
-            100.0,
-            None,
-            6.0,
-            np.zeros(3),
-            K,
-        )
-        res = be.process(job)
+        res = be.process(_first_kfs_job(snap_all, T, k))
     assert res.geo["status"] == "rejected"
     assert res.counters["fix_rejected"] == 1
     assert res.counters["fix_accepted"] >= len(T) - 4

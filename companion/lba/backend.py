@@ -351,7 +351,10 @@ class Backend:
                 del d[k]
         cov_newest = sol.cov[-1] if M else np.full((6, 6), np.nan)
         if not np.all(np.isfinite(cov_newest)):
-            self.counters["marginals_failed"] += 1
+            # the first window (two key frames: one held, the newest free) leaves the monocular scale free,
+            # so its marginals are indeterminate by construction: expected, not counted as a failure
+            if M > self.opt.min_anchors:
+                self.counters["marginals_failed"] += 1
         else:
             R = sol.T_world_cam[-1, :3, :3]
             self.cov_pos_newest = R @ cov_newest[3:, 3:] @ R.T
