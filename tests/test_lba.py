@@ -1,6 +1,7 @@
 """Local bundle adjustment with the geo-referencing term (companion.lba): factor Jacobian, recovery of a
 synthetic window, w_G = 0 is pure VO, robust loss and gating against a bad geo-fix, eq. 21 alignment,
-marginal covariances, the gravity prior against the tilt/shift ambiguity."""
+marginal covariances (and the first window's, expected to be indeterminate), the gravity prior against the
+tilt/shift ambiguity, the landmark-on-DEM term and the DEM lookup it uses (``ground_below``)."""
 
 from __future__ import annotations
 
