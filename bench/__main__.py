@@ -12,6 +12,7 @@ BENCHES = {
     "terrain_slam": "Tables 4, 5, 7 analogues: VO only vs terrain LBA",
     "thermal_ekf": "paper 2 Tables 1-2 analogues: visible / thermal / dual EKF-SLAM drift",
     "renderer": "renderer frame rate",
+    "attitude_errors": "terrain SLAM with an autopilot tilt bias or a misaligned camera mount it is not told of",
 }
 
 

@@ -35,7 +35,7 @@ from evo.core.trajectory import PoseTrajectory3D
 from bench.common import parser, table, write_json
 from companion.constants import GRAVITY_MPS2, R_BODY_CAM_NADIR
 from companion.estimators.terrain_lba import TerrainLbaEstimator, TerrainLbaOptions
-from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
+from companion.geometry import CameraIntrinsics, camera_pose, rot_from_rpy, rpy_from_rot
 from companion.types import AltimeterSample, AttitudeSample, Frame
 from sim_bridge.autopilot_link import SimNoise
 from sim_bridge.render import VisibleRenderer
@@ -56,6 +56,12 @@ class FlightSpec:
     trajectory: str  # circular | forward | scanning
     duration_s: float
     seed: int = 0
+    # attitude errors the estimator cannot see (``bench attitude_errors``): a constant roll / pitch bias in the
+    # autopilot's ATTITUDE (rad, added to every sample), and the camera's true mounting rotation beyond nadir
+    # (roll, pitch, yaw in the body frame, rad; composed as ``CameraConfig.R_body_cam``) while the estimator
+    # is told the nominal nadir mount unless the method is listed in ``run_flight``'s ``mount_known``
+    tilt_bias_rad: tuple[float, float] = (0.0, 0.0)
+    mount_error_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 def make_trajectory(kind: str, duration_s: float, ground_m: float) -> Trajectory:
@@ -121,16 +127,18 @@ class Simulation:
         self.states = self.traj.states(self.times)
         self.p_true = np.stack([s.p_world for s in self.states])
         self.yaw0 = float(rpy_from_rot(self.states[0].R_world_body)[2]) + self.yaw_bias
+        self.R_body_cam_true = rot_from_rpy(*spec.mount_error_rpy_rad) @ R_BODY_CAM_NADIR
         self.render_s = 0.0
 
-    def estimator(self, options: TerrainLbaOptions) -> TerrainLbaEstimator:
+    def estimator(self, options: TerrainLbaOptions, mount_known: bool = False) -> TerrainLbaEstimator:
         """The estimator as the daemon builds it: degraded DEM, known start, compass yaw, and the scene's
         sun (a vehicle knows the sun's direction from the time and its position; paper 1's presumed sun is
-        the geo-referencing benchmark's condition, not this one's)."""
+        the geo-referencing benchmark's condition, not this one's). The camera mount it is given: nominal
+        nadir, or with ``mount_known`` the true one (a calibrated ``cameras.nadir.extra_rpy_deg``)."""
         return TerrainLbaEstimator(
             options,
             self.intr,
-            R_BODY_CAM_NADIR,
+            self.R_body_cam_true if mount_known else R_BODY_CAM_NADIR,
             self.dem_est,
             self.scene.sun,
             self.states[0].p_world.copy(),
@@ -143,24 +151,31 @@ class Simulation:
         n = self.noise
         for k, (t, s) in enumerate(zip(self.times, self.states)):
             stamp = int(round(t * 1e6))
-            R_wc, p_c = camera_pose(s.R_world_body, s.p_world)
+            R_wc, p_c = camera_pose(s.R_world_body, s.p_world, self.R_body_cam_true)
             tr = time.perf_counter()
             img = self.renderer.render(R_wc, p_c, seed=k)
             self.render_s += time.perf_counter() - tr
             rpy = rpy_from_rot(s.R_world_body) + self.rng.normal(
                 0.0, [n.roll_pitch_rad, n.roll_pitch_rad, n.yaw_rad]
             )
+            rpy[:2] += self.spec.tilt_bias_rad
             att = AttitudeSample(stamp, float(rpy[0]), float(rpy[1]), float(rpy[2] + self.yaw_bias))
             r = self.scene.dem.beam_range(s.p_world, s.R_world_body[:, 2])
             r += self.rng.normal(0.0, n.range_m + n.range_frac * r)
             yield float(t), att, AltimeterSample(stamp, float(r)), Frame(stamp, "nadir", img, k)
 
 
-def run_flight(spec: FlightSpec, methods: dict[str, TerrainLbaOptions], log: bool = True) -> dict[str, Any]:
-    """Render one flight and run every method on it in lock-step; returns per-method results."""
+def run_flight(
+    spec: FlightSpec,
+    methods: dict[str, TerrainLbaOptions],
+    log: bool = True,
+    mount_known: tuple[str, ...] = (),
+) -> dict[str, Any]:
+    """Render one flight and run every method on it in lock-step; returns per-method results. The methods
+    named in ``mount_known`` are given the camera's true mount (``FlightSpec.mount_error_rpy_rad``)."""
     t0 = time.perf_counter()
     sim = Simulation(spec)
-    est = {name: sim.estimator(opt) for name, opt in methods.items()}
+    est = {name: sim.estimator(opt, name in mount_known) for name, opt in methods.items()}
     setup_s = time.perf_counter() - t0
     lat: dict[str, list[float]] = {n: [] for n in methods}
     got: dict[str, list[tuple[float, np.ndarray]]] = {n: [] for n in methods}
@@ -196,6 +211,14 @@ def run_flight(spec: FlightSpec, methods: dict[str, TerrainLbaOptions], log: boo
             pe_ = np.stack([g[1] for g in got[n]])
             res.update(ape_stats(times, p_true, te, pe_))
             res["t_s"] = te
+            # mean error along the body's heading (forward, right): a body-fixed bias (a tilt the estimator
+            # does not know) turns with the vehicle in a circular flight and averages out in north / east
+            k_est = np.clip(np.searchsorted(times, te - 1e-9), 0, len(times) - 1)
+            yaw = np.array([rpy_from_rot(sim.states[k].R_world_body)[2] for k in k_est])
+            d_ne = pe_[:, :2] - p_true[k_est, :2]
+            fwd = d_ne[:, 0] * np.cos(yaw) + d_ne[:, 1] * np.sin(yaw)
+            right = -d_ne[:, 0] * np.sin(yaw) + d_ne[:, 1] * np.cos(yaw)
+            res["mean_error_forward_right_m"] = [float(fwd.mean()), float(right.mean())]
             # distance flown (truth) at each estimate, for the drift plot
             cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p_true, axis=0), axis=1))])
             res["distance_at_estimate_m"] = np.interp(te, times, cum)
@@ -223,6 +246,8 @@ def run_flight(spec: FlightSpec, methods: dict[str, TerrainLbaOptions], log: boo
             float(np.degrees(scene.sun.elevation_rad)),
         ],
         "yaw_bias_deg": float(np.degrees(spec_yaw_bias)),
+        "tilt_bias_deg": [float(np.degrees(x)) for x in spec.tilt_bias_rad],
+        "mount_error_rpy_deg": [float(np.degrees(x)) for x in spec.mount_error_rpy_rad],
         "setup_s": setup_s,
         "render_ms_per_frame": render_s / len(times) * 1e3,
         "wall_s": time.perf_counter() - t0,

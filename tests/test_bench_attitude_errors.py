@@ -1,0 +1,47 @@
+"""The attitude errors ``bench attitude_errors`` injects: an autopilot roll/pitch bias in every ATTITUDE
+sample, and a camera mount the estimator is not told of unless calibrated (as the config would say)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.terrain_slam import FlightSpec, Simulation
+from companion.config import CameraConfig
+from companion.constants import R_BODY_CAM_NADIR
+from companion.estimators.terrain_lba import TerrainLbaOptions
+from companion.geometry import rpy_from_rot
+
+
+@pytest.fixture(scope="module")
+def sim() -> Simulation:
+    spec = FlightSpec(
+        "08", "circular", 4.0, 0, tilt_bias_rad=(0.01, -0.004), mount_error_rpy_rad=(0.0, 0.02, 0.0)
+    )
+    return Simulation(spec)
+
+
+def test_attitude_samples_carry_the_tilt_bias(sim: Simulation) -> None:
+    rows = []
+    for k, (_, att, _, frame) in enumerate(sim.samples()):
+        true_rpy = rpy_from_rot(sim.states[k].R_world_body)
+        rows.append([att.roll_rad - true_rpy[0], att.pitch_rad - true_rpy[1]])
+        assert frame.image.shape == (480, 480)
+    d = np.array(rows)
+    # 60 samples with the simulated autopilot's 0.003 rad white noise: the mean is the bias within ~0.0004
+    assert d.mean(axis=0) == pytest.approx([0.01, -0.004], abs=0.0015)
+
+
+def test_true_mount_is_the_configs_composition_and_only_the_calibrated_estimator_gets_it(
+    sim: Simulation,
+) -> None:
+    cfg = CameraConfig(key="uav/camera/nadir", extra_rpy_deg=(0.0, float(np.degrees(0.02)), 0.0))
+    assert np.allclose(sim.R_body_cam_true, cfg.R_body_cam(), atol=1e-12)
+    assert not np.allclose(sim.R_body_cam_true, R_BODY_CAM_NADIR, atol=1e-3)
+    opts = TerrainLbaOptions()
+    for known, R in ((False, R_BODY_CAM_NADIR), (True, sim.R_body_cam_true)):
+        e = sim.estimator(opts, mount_known=known)
+        try:
+            assert np.allclose(e.R_body_cam, R, atol=1e-12)
+        finally:
+            e.close()
