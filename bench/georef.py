@@ -21,7 +21,12 @@ Error: horizontal distance between the recovered and the true vehicle position, 
 pixels (divided by the true GSD = true height above ground / fx). success_rate: error < 1 px. mean_px and
 mean_m: over the successful matches. median_px and p95_px: over ALL attempts, a failure (no fix / no
 transform) counted as infinite (so they are null in the JSON when more than half / 5 % of attempts fail).
-ms_per_frame: mean wall time of the method per frame, rectification included, on a shared 2-core machine.
+ms_per_frame: mean wall time of the method per frame, rectification included, on a shared 2-core machine;
+ms_p50 / ms_p95 its median and 95th percentile; cpu_ms_per_frame: the process's CPU time per frame (all its
+threads: OpenCV runs some steps on both cores, so this can exceed the wall time; on this virtual machine it
+too moves by tens of per cent between runs of the same code). ms_best_of_3_per_frame (ours only): each frame located
+three times, the least wall time kept, mean over the frames: the cost of the code without the interference of
+other programs (``timeit``'s convention); the accuracy figures are from the first call.
 """
 
 from __future__ import annotations
@@ -49,6 +54,7 @@ PRED_SIGMA_M = 3.0
 MARGIN_M = 90.0  # keep the footprint (about 100 m wide) on the 600 m scene
 GROSS_ERROR_M = 2.0  # a "wrong fix" for the quality calibration
 DEGRADATION: dict[str, Any] = dict(factor=4, noise_sigma_m=0.3, hole_fraction=0.01)
+TIMING_REPEATS = 3  # ``ours`` is timed this many times per frame (``ms_best_of_3_per_frame``)
 METHODS = ("ours", "ours_presumed", "cv2_phasecorrelate", "sift", "orb")
 SWEEPS = {
     "intensity": [0.1, 1.0, 5.0, 10.0, 12.0],  # 5.3.1 (fixed exposure: the camera does not adapt)
@@ -162,11 +168,14 @@ def evaluate(geos: dict[str, GeoReferencer], frames: list[dict], methods=METHODS
         "sift": _feature_matcher("sift"),
         "orb": _feature_matcher("orb"),
     }
-    out: dict[str, dict] = {m: dict(err_px=[], err_m=[], ms=[], quality=[], reason=[]) for m in methods}
+    out: dict[str, dict] = {
+        m: dict(err_px=[], err_m=[], ms=[], cpu_ms=[], ms_best=[], quality=[], reason=[]) for m in methods
+    }
     for fr in frames:
         gsd_true = fr["agl"] / INTR.fx
         for m in methods:
             t0 = time.perf_counter()
+            c0 = time.process_time()
             if m.startswith("ours"):
                 fix = geos[m].locate(fr["image"], fr["R"], fr["pred"], fr["agl"])
                 ne = fix.p_world[:2] if fix.ok else None
@@ -175,6 +184,16 @@ def evaluate(geos: dict[str, GeoReferencer], frames: list[dict], methods=METHODS
             else:
                 ne = run_matcher(geos["ours"], fr, matchers[m])
             out[m]["ms"].append((time.perf_counter() - t0) * 1e3)
+            out[m]["cpu_ms"].append((time.process_time() - c0) * 1e3)
+            if m == "ours":
+                # the same call again: the least of the three is the frame's cost without what other programs
+                # on this shared machine add (the convention of ``timeit``); the first call is the as-run time
+                best = out[m]["ms"][-1]
+                for _ in range(TIMING_REPEATS - 1):
+                    t1 = time.perf_counter()
+                    geos[m].locate(fr["image"], fr["R"], fr["pred"], fr["agl"])
+                    best = min(best, (time.perf_counter() - t1) * 1e3)
+                out[m]["ms_best"].append(best)
             err_m = float(np.hypot(*(ne - fr["p"][:2]))) if ne is not None else np.inf
             out[m]["err_m"].append(err_m)
             out[m]["err_px"].append(err_m / gsd_true)
@@ -197,7 +216,12 @@ def summarise(raw: dict) -> dict[str, Any]:
         fix_rate=float(fixed.mean()) if e.size else float("nan"),
         mean_px_all_fixes=float(e[fixed].mean()) if fixed.any() else float("nan"),
         ms_per_frame=float(np.mean(raw["ms"])) if raw["ms"] else float("nan"),
+        ms_p50=float(np.median(raw["ms"])) if raw["ms"] else float("nan"),
+        ms_p95=float(np.percentile(raw["ms"], 95)) if raw["ms"] else float("nan"),
+        cpu_ms_per_frame=float(np.mean(raw["cpu_ms"])) if raw["cpu_ms"] else float("nan"),
     )
+    if raw["ms_best"]:
+        s["ms_best_of_3_per_frame"] = float(np.mean(raw["ms_best"]))
     if raw["reason"]:
         reasons: dict[str, int] = {}
         for r in raw["reason"]:
@@ -253,6 +277,9 @@ def _fmt_rows(per_scene: dict[str, dict], method: str) -> list[list[Any]]:
                 f"{100 * s['success_rate']:.0f}%",
                 f"{100 * s['fix_rate']:.0f}%",
                 s["ms_per_frame"],
+                s["ms_p50"],
+                s["cpu_ms_per_frame"],
+                s.get("ms_best_of_3_per_frame", float("nan")),
             ]
         )
     return rows
@@ -372,7 +399,19 @@ def run_rotation_scale(seed: int, n: int, opts: GeorefOptions, rng: np.random.Ge
     return out
 
 
-HEADERS = ["scene", "mean_px", "median_px", "p95_px", "mean_m", "success", "fixes", "ms/frame"]
+HEADERS = [
+    "scene",
+    "mean_px",
+    "median_px",
+    "p95_px",
+    "mean_m",
+    "success",
+    "fixes",
+    "ms/frame",
+    "ms p50",
+    "cpu ms",
+    "ms best/3",
+]
 
 
 def main(argv: list[str] | None = None) -> int:
