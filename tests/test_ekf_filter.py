@@ -10,6 +10,7 @@ import pytest
 from scipy.stats import chi2
 from test_ekf_scene import G, camera_model, detections, make_scene, straight_flight
 
+from companion.ekf import landmarks as lmk
 from companion.ekf.filter import InverseDepthEkf
 from companion.ekf.options import EkfOptions
 from companion.ekf.slam import VisThermalSlam
@@ -194,6 +195,28 @@ def test_landmark_budget_and_bookkeeping(mode):
         np.testing.assert_allclose(pose.covariance, pose.covariance.T)
         assert np.all(np.linalg.eigvalsh(pose.covariance) > 0)
     assert sum(pose.matched.values()) >= 8 * len(slam.camera_names)
+
+
+def _cross_camera_spacing(over_map: bool, seed: int) -> float:
+    """Mean pixel distance from each thermal landmark to the nearest visible one after the first dual frame
+    (both cameras see the same keypoints; visible samples first, then thermal)."""
+    opts = EkfOptions(mode="dual", max_landmarks_per_camera=12, seed=seed, diversity_over_map=over_map)
+    slam, _ = next(_noiseless_frames(opts, 0.6))
+    ekf = slam.ekf
+    uv = {}
+    for ci, c in enumerate(slam.camera_names):
+        idx = np.flatnonzero(ekf.lm_cam == ci)
+        uv[c] = lmk.project(ekf.y[idx], ekf.r, ekf.R_world_body, slam.cameras[c]).uv
+    d = np.linalg.norm(uv["thermal"][:, None, :] - uv["visible"][None, :, :], axis=2)
+    return float(d.min(axis=1).mean())
+
+
+def test_dual_diversity_counts_the_other_cameras_landmarks():
+    """Paper 2 eq. 8 over the dual map: thermal's new landmarks go where visible has none, so the two
+    cameras' layouts interleave instead of piling up on the same spots."""
+    joint = np.mean([_cross_camera_spacing(True, s) for s in range(6)])
+    separate = np.mean([_cross_camera_spacing(False, s) for s in range(6)])
+    assert joint > 1.3 * separate, (joint, separate)
 
 
 @pytest.mark.parametrize("anchor", [True, False])

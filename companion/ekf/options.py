@@ -80,6 +80,10 @@ class EkfOptions:
     altimeter_gate_chi2: float = 10.83  # Mahalanobis gate (chi-square, 1 dof, 99.9 %)
     # --- diversity sampling (eq. 8) ---
     kde_min_bandwidth_px: float = 16.0  # px, floor of the Scott's-rule kernel width (cap: ``sampling``)
+    # dual: the density of eq. 8 over the whole map (paper 2: f of M_{Z,t}, the tracked landmarks of modality Z,
+    # both cameras' for Z = dual), the other camera's landmarks projected into the sampling camera's image.
+    # False: each camera's own landmarks only (two independent 32-landmark layouts)
+    diversity_over_map: bool = True
     # --- SIFT (cv2.SIFT_create) ---
     # keypoints kept per image (best by contrast) and the contrast threshold, per camera. More keypoints per
     # image let a landmark's keypoint be found again in the next frame more often (longer tracks). On the

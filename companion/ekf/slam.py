@@ -331,7 +331,8 @@ class VisThermalSlam:
             det = detections.get(cam_name)
             if det is None or len(det) == 0:
                 continue
-            self._add_landmarks(ci, cam_name, det, used_kp[cam_name], tracked_uv[cam_name])
+            others = self._other_cameras_uv(ci) if o.diversity_over_map else np.zeros((0, 2))
+            self._add_landmarks(ci, cam_name, det, used_kp[cam_name], tracked_uv[cam_name], others)
         self._frames_since_match = 0 if sum(matched_count.values()) > 0 else self._frames_since_match + 1
         return self.pose(int(stamp_us), matched_count)
 
@@ -383,9 +384,39 @@ class VisThermalSlam:
         self.counters.ransac_rejected += int(k - accepted.sum())
         return accepted
 
+    def _other_cameras_uv(self, ci: int) -> np.ndarray:
+        """(M, 2) pixels in camera ``ci``'s image of the other cameras' landmarks that project into it (in front
+        of it, inside the image): with co-registered cameras, where their own keypoints are."""
+        ekf = self.ekf
+        assert ekf is not None
+        idx = np.flatnonzero(ekf.lm_cam != ci)
+        if len(idx) == 0:
+            return np.zeros((0, 2))
+        cam = self.cameras[self.camera_names[ci]]
+        proj = lmk.project(ekf.y[idx], ekf.r, ekf.R_world_body, cam)
+        uv = proj.uv
+        inside = (
+            (proj.depth > 0)
+            & (uv[:, 0] >= 0)
+            & (uv[:, 0] <= cam.width - 1)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] <= cam.height - 1)
+        )
+        return np.asarray(uv[inside], float).reshape(-1, 2)
+
     def _add_landmarks(
-        self, ci: int, cam_name: str, det: Detections, used: np.ndarray, tracked: list[np.ndarray]
+        self,
+        ci: int,
+        cam_name: str,
+        det: Detections,
+        used: np.ndarray,
+        tracked: list[np.ndarray],
+        others_uv: np.ndarray,
     ) -> None:
+        """New landmarks for camera ``ci`` (eq. 8) among its unused keypoints. ``tracked``: its own tracked
+        landmarks' pixels; ``others_uv``: the other cameras' landmarks in its image, which count in the
+        diversity density but not in the separation from tracked points (the cameras are not matched
+        against each other)."""
         ekf = self.ekf
         assert ekf is not None
         o = self.opts
@@ -412,14 +443,16 @@ class VisThermalSlam:
         uv_c = det.uv[cidx]
         _, first = np.unique(np.round(uv_c / 2.0), axis=0, return_index=True)
         cidx = cidx[np.sort(first)]
+        map_uv = np.vstack([tracked_arr, others_uv]) if len(others_uv) else tracked_arr
+        n_map = o.max_landmarks_per_camera * (len(self.camera_names) if len(others_uv) else 1)
         pick = sample_new_landmarks(
             det.uv[cidx],
-            tracked_arr,
+            map_uv,
             free,
             o.sampling,
             self.rng,
             o.kde_min_bandwidth_px,
-            budget_bandwidth(cam.width * cam.height, o.max_landmarks_per_camera),
+            budget_bandwidth(cam.width * cam.height, n_map),
             float(cam.width * cam.height),
         )
         if len(pick) == 0:
