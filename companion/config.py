@@ -142,6 +142,8 @@ class EkfConfig(_Strict):
     mode: Literal["visible", "thermal", "dual"] = "dual"
     max_landmarks_per_camera: Annotated[int, Field(ge=4, le=256)] = 32
     sampling: Literal["kde", "uniform"] = "kde"
+    # dual: the diversity density over both cameras' landmarks (paper 2's map), false: each camera's own
+    diversity_over_map: bool = True
     pair_tolerance_ms: Annotated[float, Field(gt=0)] = 5.0
     one_point_ransac: bool = True  # refuse matches the other matches disagree with (Civera et al. 2010)
     ransac_threshold_px: Annotated[float, Field(gt=0)] = 0.5

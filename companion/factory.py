@@ -86,6 +86,7 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             mode=e.mode,
             max_landmarks_per_camera=e.max_landmarks_per_camera,
             sampling=e.sampling,
+            diversity_over_map=e.diversity_over_map,
             one_point_ransac=e.one_point_ransac,
             ransac_threshold_px=e.ransac_threshold_px,
             anchor_descriptor=e.anchor_descriptor,

@@ -80,6 +80,7 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         "mode": "thermal",
         "max_landmarks_per_camera": 20,
         "sampling": "uniform",
+        "diversity_over_map": False,
         "one_point_ransac": False,
         "ransac_threshold_px": 0.8,
         "anchor_descriptor": False,
