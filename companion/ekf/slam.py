@@ -331,8 +331,7 @@ class VisThermalSlam:
             det = detections.get(cam_name)
             if det is None or len(det) == 0:
                 continue
-            others = self._other_cameras_uv(ci) if o.diversity_over_map else np.zeros((0, 2))
-            self._add_landmarks(ci, cam_name, det, used_kp[cam_name], tracked_uv[cam_name], others)
+            self._add_landmarks(ci, cam_name, det, used_kp[cam_name], tracked_uv[cam_name])
         self._frames_since_match = 0 if sum(matched_count.values()) > 0 else self._frames_since_match + 1
         return self.pose(int(stamp_us), matched_count)
 
@@ -411,12 +410,11 @@ class VisThermalSlam:
         det: Detections,
         used: np.ndarray,
         tracked: list[np.ndarray],
-        others_uv: np.ndarray,
     ) -> None:
         """New landmarks for camera ``ci`` (eq. 8) among its unused keypoints. ``tracked``: its own tracked
-        landmarks' pixels; ``others_uv``: the other cameras' landmarks in its image, which count in the
-        diversity density but not in the separation from tracked points (the cameras are not matched
-        against each other)."""
+        landmarks' pixels. With ``diversity_over_map`` and KDE sampling the other cameras' landmarks in its
+        image count in the diversity density too, but not in the separation from tracked points (the
+        cameras are not matched against each other)."""
         ekf = self.ekf
         assert ekf is not None
         o = self.opts
@@ -443,6 +441,10 @@ class VisThermalSlam:
         uv_c = det.uv[cidx]
         _, first = np.unique(np.round(uv_c / 2.0), axis=0, return_index=True)
         cidx = cidx[np.sort(first)]
+        # the other cameras' landmarks only where they are used: after the free-slot check, for KDE sampling
+        others_uv = (
+            self._other_cameras_uv(ci) if o.diversity_over_map and o.sampling == "kde" else np.zeros((0, 2))
+        )
         map_uv = np.vstack([tracked_arr, others_uv]) if len(others_uv) else tracked_arr
         n_map = o.max_landmarks_per_camera * (len(self.camera_names) if len(others_uv) else 1)
         pick = sample_new_landmarks(
