@@ -13,6 +13,7 @@ BENCHES = {
     "thermal_ekf": "paper 2 Tables 1-2 analogues: visible / thermal / dual EKF-SLAM drift",
     "renderer": "renderer frame rate",
     "attitude_errors": "terrain SLAM with an autopilot tilt bias or a misaligned camera mount it is not told of",
+    "ekf_patch": "EKF-SLAM with and without the patch search for landmarks SIFT missed (paired trials)",
 }
 
 

@@ -149,6 +149,10 @@ class EkfConfig(_Strict):
     ransac_threshold_px: Annotated[float, Field(gt=0)] = 0.5
     # match a landmark against the descriptor it was created with (false: the last matched keypoint's)
     anchor_descriptor: bool = True
+    # a landmark SIFT misses is searched for with its first image patch (warped by the predicted motion,
+    # normalised cross-correlation inside the gate); the correlation a found place must reach
+    patch_cameras: list[Literal["visible", "thermal"]] = []
+    patch_min_score: Annotated[float, Field(gt=0, le=1)] = 0.8
     # SIFT per camera: keypoints kept per image (best by contrast) and the contrast threshold; set from your
     # cameras (a faint, smooth thermal image wants a lower threshold)
     sift_nfeatures_visible: Annotated[int, Field(ge=10, le=5000)] = 800

@@ -90,6 +90,8 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             one_point_ransac=e.one_point_ransac,
             ransac_threshold_px=e.ransac_threshold_px,
             anchor_descriptor=e.anchor_descriptor,
+            patch_cameras=tuple(e.patch_cameras),
+            patch_min_score=e.patch_min_score,
             sift_nfeatures_visible=e.sift_nfeatures_visible,
             sift_nfeatures_thermal=e.sift_nfeatures_thermal,
             sift_contrast_threshold_visible=e.sift_contrast_threshold_visible,

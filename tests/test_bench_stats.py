@@ -76,3 +76,29 @@ def test_runs_seeds_reports_what_the_records_say() -> None:
     assert runs_seeds([{"seed": 1}, {"seed": 0}, {"seed": 1}]) == [0, 1]
     assert runs_seeds([{"seed": 0}, {"name": "1"}]) is None
     assert runs_seeds([]) is None
+
+
+def test_ekf_patch_summary_pairs_each_variant_with_sift_only() -> None:
+    """Known runs: the variant's paired difference and its standard error, per mode; sift_only has none."""
+    from scipy.stats import sem
+
+    from bench.ekf_patch import KEYS, MODES, VARIANTS, summarise
+
+    rng = np.random.default_rng(0)
+    runs = []
+    for i in range(6):
+        r = {}
+        for v, shift in zip(VARIANTS, (0.0, -0.1, 0.05)):
+            r[v] = {
+                m: {k: 1.0 + i + shift + 0.01 * rng.standard_normal() for k in (*KEYS, "filter_s_per_frame")}
+                for m in MODES
+            }
+        runs.append(r)
+    s = summarise(runs)
+    for m in MODES:
+        assert "E_percent_diff" not in s[m]["sift_only"]
+        d = np.array([r["patch_visible"][m]["E_percent"] - r["sift_only"][m]["E_percent"] for r in runs])
+        assert s[m]["patch_visible"]["E_percent_diff"] == pytest.approx(d.mean())
+        assert s[m]["patch_visible"]["E_percent_diff_sem"] == pytest.approx(sem(d))
+        assert s[m]["patch_visible"]["E_percent_diff"] == pytest.approx(-0.1, abs=0.03)
+        assert s[m]["patch_both"]["mean_error_m_diff"] == pytest.approx(0.05, abs=0.03)

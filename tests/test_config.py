@@ -84,6 +84,8 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         "one_point_ransac": False,
         "ransac_threshold_px": 0.8,
         "anchor_descriptor": False,
+        "patch_cameras": ("visible",),
+        "patch_min_score": 0.9,
         "sift_nfeatures_visible": 500,
         "sift_nfeatures_thermal": 300,
         "sift_contrast_threshold_visible": 0.03,

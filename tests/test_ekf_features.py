@@ -6,7 +6,15 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.ekf.features import Detections, SiftDetector, match_predicted, to_uint8
+from companion.ekf.features import (
+    Detections,
+    SiftDetector,
+    match_predicted,
+    ncc_search,
+    reference_patch,
+    to_uint8,
+    warp_template,
+)
 from companion.ekf.options import EkfOptions
 
 
@@ -94,3 +102,57 @@ def test_each_camera_gets_its_own_sift_settings():
     assert len(SiftDetector(capped, "thermal").detect(faint)) <= 40
     with pytest.raises(ValueError, match="camera"):
         SiftDetector(opts, "lidar")
+
+
+def _affine(angle_deg: float, scale: float, shift: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(2,3) map reference pixel -> current pixel: rotate and scale about ``centre``, then shift."""
+    a = np.deg2rad(angle_deg)
+    L = scale * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    return np.hstack([L, (centre + shift - L @ centre)[:, None]])
+
+
+@pytest.mark.parametrize("angle_deg, scale", [(0.0, 1.0), (12.0, 1.0), (-8.0, 1.15), (20.0, 0.85)])
+def test_patch_search_finds_a_feature_after_a_known_rotation_scale_and_subpixel_shift(angle_deg, scale):
+    """The reference image moved by a known affine map (sub-pixel shift included): the warped first patch is
+    found where the map sends each feature, to 0.15 px, with the prediction off by a couple of pixels."""
+    ref = (255 * _texture(4)).astype(np.uint8)
+    A = _affine(angle_deg, scale, np.array([5.3, -3.7]), np.array([320.0, 240.0]))
+    cur = cv2.warpAffine(ref, A, (640, 480), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    L_ref_from_cur = np.linalg.inv(A[:, :2])
+    rng = np.random.default_rng(0)
+    errors = []
+    for _ in range(30):
+        uv_ref = rng.uniform([200, 150], [440, 330])
+        truth = A[:, :2] @ uv_ref + A[:, 2]
+        patch, origin = reference_patch(ref, uv_ref, 21)
+        template = warp_template(patch, origin, uv_ref, L_ref_from_cur, 7)
+        pred = truth + rng.normal(0, 2.0, 2)
+        uv = ncc_search(cur, template, pred, np.eye(2) * 9.0, 9.21, 24, 0.8, 0.05)
+        assert uv is not None
+        errors.append(np.linalg.norm(uv - truth))
+    assert np.median(errors) < 0.15 and max(errors) < 0.5
+
+
+def test_patch_search_refuses_flat_repeated_and_out_of_gate():
+    rng = np.random.default_rng(1)
+    tex = (255 * _texture(5)).astype(np.uint8)
+    patch, origin = reference_patch(tex, np.array([300.0, 200.0]), 21)
+    template = warp_template(patch, origin, np.array([300.0, 200.0]), np.eye(2), 7)
+    # the feature is there, but the gate (1 px sigma around a point 12 px away) does not reach it
+    assert ncc_search(tex, template, np.array([312.0, 200.0]), np.eye(2), 9.21, 24, 0.8, 0.05) is None
+    assert ncc_search(tex, template, np.array([301.0, 200.0]), np.eye(2), 9.21, 24, 0.8, 0.05) is not None
+    # a flat template: nothing to correlate
+    flat = np.full((15, 15), 90.0, np.float32)
+    assert ncc_search(tex, flat, np.array([300.0, 200.0]), np.eye(2) * 9.0, 9.21, 24, 0.8, 0.05) is None
+    # vertical stripes 6 px apart: the same score at several places inside the gate
+    x = np.arange(640)
+    stripes = np.tile((128 + 100 * np.sin(2 * np.pi * x / 6.0)).astype(np.uint8), (480, 1))
+    stripes = np.clip(stripes + rng.normal(0, 2, stripes.shape), 0, 255).astype(np.uint8)
+    patch, origin = reference_patch(stripes, np.array([300.0, 200.0]), 21)
+    template = warp_template(patch, origin, np.array([300.0, 200.0]), np.eye(2), 7)
+    assert (
+        ncc_search(stripes, template, np.array([300.0, 200.0]), np.eye(2) * 25.0, 9.21, 24, 0.8, 0.05) is None
+    )
+    # a different texture: no place correlates well enough
+    other = (255 * _texture(6)).astype(np.uint8)
+    assert ncc_search(other, template, np.array([300.0, 200.0]), np.eye(2) * 9.0, 9.21, 24, 0.8, 0.05) is None

@@ -13,6 +13,10 @@ Matching is active search (Davison; Civera et al. 2008): each landmark's predict
 innovation covariance S define a Mahalanobis gate; among the keypoints inside it, the nearest
 descriptor wins if it passes an absolute distance threshold and Lowe's ratio test against the
 second-nearest gated candidate; a keypoint claimed by two landmarks goes to the closer descriptor.
+
+Patch search (optional, ``EkfOptions.patch_cameras``): a landmark with no SIFT match is looked for with the
+image patch cut around its keypoint when it was created (``reference_patch``), warped to the predicted view
+(``warp_template``) and correlated inside the same gate (``ncc_search``).
 """
 
 from __future__ import annotations
@@ -28,11 +32,13 @@ from companion.ekf.options import EkfOptions
 @dataclass(frozen=True)
 class Detections:
     """Keypoints of one image. uv: (N,2) float64 pixels (full-resolution image); desc: (N,128) float32;
-    size_px: (N,) SIFT keypoint diameter in full-resolution pixels (None when unknown)."""
+    size_px: (N,) SIFT keypoint diameter in full-resolution pixels (None when unknown); image: the (H,W)
+    8-bit full-resolution image they were found in, for the patch search (None: no patch search)."""
 
     uv: np.ndarray
     desc: np.ndarray
     size_px: np.ndarray | None = None
+    image: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -69,19 +75,19 @@ class SiftDetector:
 
     def detect(self, image: np.ndarray) -> Detections:
         """SIFT keypoints and descriptors of a (H,W) uint8 or uint16 image."""
-        img = to_uint8(image, *self._pct)
+        img = full = to_uint8(image, *self._pct)
         if self._scale != 1.0:
             img = cv2.resize(img, None, fx=self._scale, fy=self._scale, interpolation=cv2.INTER_AREA)
         kps, desc = self._sift.detectAndCompute(img, None)
         if desc is None or len(kps) == 0:
-            return Detections(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0))
+            return Detections(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0), full)
         uv = np.array([k.pt for k in kps], dtype=np.float64)
         size = np.array([k.size for k in kps], dtype=np.float64)
         if self._scale != 1.0:
             # resized pixel centres: u_full = (u_small + 0.5) / s - 0.5
             uv = (uv + 0.5) / self._scale - 0.5
             size = size / self._scale
-        return Detections(uv, desc.astype(np.float32), size)
+        return Detections(uv, desc.astype(np.float32), size, full)
 
 
 def match_predicted(
@@ -126,3 +132,93 @@ def match_predicted(
             continue
         out[li] = best[li]
     return out
+
+
+# --- patch search: the fallback for a landmark SIFT did not find again ------------------------------------
+# Hand-written on OpenCV's warpAffine / matchTemplate: MonoSLAM's active search with a feature's first patch,
+# warped by the predicted motion (Davison et al., T-PAMI 2007, section 3.4; Civera et al. 2008 keep it), has
+# no library implementation.
+
+
+def reference_patch(image: np.ndarray, uv: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
+    """The (2 half + 1)^2 pixels of ``image`` around the integer pixel nearest ``uv`` (border replicated) and
+    the pixel coordinates of the patch's pixel (0, 0) in the image."""
+    c = np.round(np.asarray(uv, float))
+    size = 2 * half + 1
+    patch = cv2.getRectSubPix(image, (size, size), (float(c[0]), float(c[1])))
+    return patch, c - half
+
+
+def warp_template(
+    patch: np.ndarray, origin: np.ndarray, feature_uv: np.ndarray, L_ref_from_cur: np.ndarray, half: int
+) -> np.ndarray:
+    """A (2 half + 1)^2 float32 template of the feature as the current camera should see it.
+
+    ``patch`` was cut from the reference image with its pixel (0, 0) at ``origin``; the feature is at
+    ``feature_uv`` there. ``L_ref_from_cur`` (2,2) maps a small pixel offset in the current image to the
+    reference image (the inverse of the predicted local affine motion). The template's centre pixel is the
+    feature."""
+    M = np.zeros((2, 3))
+    M[:, :2] = L_ref_from_cur
+    M[:, 2] = (
+        np.asarray(feature_uv, float) - np.asarray(origin, float) - L_ref_from_cur @ np.array([half, half])
+    )
+    size = 2 * half + 1
+    return cv2.warpAffine(
+        patch.astype(np.float32),
+        M,
+        (size, size),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+
+
+def ncc_search(
+    image: np.ndarray,
+    template: np.ndarray,
+    pred_uv: np.ndarray,
+    S: np.ndarray,
+    gate_chi2: float,
+    max_radius_px: int,
+    min_score: float,
+    min_margin: float,
+) -> np.ndarray | None:
+    """Where ``template``'s centre is in ``image``: the best normalised cross-correlation inside the
+    Mahalanobis gate of ``pred_uv`` (innovation covariance S, (2,2)), refined to sub-pixel by a parabola per
+    axis. None when the template is flat, the best score is below ``min_score``, or another local maximum
+    scores within ``min_margin`` of it (a repeated texture)."""
+    if float(np.std(template)) < 1.0:
+        return None
+    half = template.shape[0] // 2
+    lam = float(np.linalg.eigvalsh(S)[-1])
+    r = int(min(np.ceil(np.sqrt(gate_chi2 * lam)), max_radius_px))
+    c = np.round(np.asarray(pred_uv, float))
+    size = 2 * (r + half) + 1
+    window = cv2.getRectSubPix(image, (size, size), (float(c[0]), float(c[1]))).astype(np.float32)
+    score = cv2.matchTemplate(window, template.astype(np.float32), cv2.TM_CCOEFF_NORMED)  # (2r+1, 2r+1)
+    off = np.arange(-r, r + 1, dtype=float)
+    dx = c[0] + off[None, :] - pred_uv[0]
+    dy = c[1] + off[:, None] - pred_uv[1]
+    Si = np.linalg.inv(S)
+    maha = Si[0, 0] * dx * dx + (Si[0, 1] + Si[1, 0]) * dx * dy + Si[1, 1] * dy * dy
+    score = np.where((maha <= gate_chi2) & np.isfinite(score), score, -np.inf)
+    i, j = np.unravel_index(int(np.argmax(score)), score.shape)
+    best = float(score[i, j])
+    if not best >= min_score:
+        return None
+    # another local maximum (3 x 3) nearly as good: a repeated texture, the place is ambiguous
+    peaks = score >= cv2.dilate(np.where(np.isfinite(score), score, -2.0).astype(np.float32), np.ones((3, 3)))
+    peaks[max(i - 1, 0) : i + 2, max(j - 1, 0) : j + 2] = False
+    if np.any(score[peaks] >= best - min_margin):
+        return None
+
+    def vertex(a: float, b: float, cc: float) -> float:
+        den = a - 2.0 * b + cc
+        if not (np.isfinite(a) and np.isfinite(cc)) or den >= 0:
+            return 0.0
+        return float(np.clip(0.5 * (a - cc) / den, -0.5, 0.5))
+
+    n = score.shape[0]
+    sx = vertex(score[i, j - 1], best, score[i, j + 1]) if 0 < j < n - 1 else 0.0
+    sy = vertex(score[i - 1, j], best, score[i + 1, j]) if 0 < i < n - 1 else 0.0
+    return np.array([c[0] + off[j] + sx, c[1] + off[i] + sy])

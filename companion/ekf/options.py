@@ -63,6 +63,17 @@ class EkfOptions:
     # False: E lower by 0.059 +- 0.017 / 0.020 +- 0.009 / 0.015 +- 0.010 points visible / thermal / dual,
     # mean position error by 0.086 / 0.024 / 0.027 m (README)
     anchor_descriptor: bool = True
+    # a landmark SIFT did not find inside its gate is searched for with its first patch (MonoSLAM's active
+    # search: the patch cut around its keypoint when it was created, warped by the predicted motion, normalised
+    # cross-correlation inside the same gate). SIFT finds a keypoint again in the next frame only so often: on
+    # the simulated Europa 20 % (visible) / 14.5 % (thermal) of the in-view landmarks had no keypoint in the gate
+    # cameras that do it ("visible", "thermal"); () = none
+    patch_cameras: tuple[str, ...] = ()
+    patch_half_px: int = 7  # template half size (15 x 15 px)
+    patch_ref_half_px: int = 21  # half size of the stored reference patch (the template is warped from it)
+    patch_max_radius_px: int = 24  # px, search radius cap (the gate decides below it)
+    patch_min_score: float = 0.8  # normalised cross-correlation of an accepted position
+    patch_min_margin: float = 0.05  # any other local maximum of the correlation must score this much lower
     max_consecutive_misses: int = 2  # frames a landmark may go unmatched inside the image before deletion
     image_margin_px: float = 8.0  # landmarks predicted closer than this to the border are deleted
     min_new_separation_px: float = 12.0  # new landmarks keep this distance from tracked ones
@@ -122,5 +133,8 @@ class EkfOptions:
         cameras_for_mode(self.mode)
         if self.sampling not in SAMPLING_METHODS:
             raise ValueError(f"sampling must be one of {SAMPLING_METHODS}, got {self.sampling!r}")
+        bad = [c for c in self.patch_cameras if c not in ("visible", "thermal")]
+        if bad:
+            raise ValueError(f"patch_cameras may hold 'visible' and 'thermal', got {bad}")
         if self.max_landmarks_per_camera < 1:
             raise ValueError("max_landmarks_per_camera must be >= 1")

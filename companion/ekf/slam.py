@@ -21,7 +21,7 @@ import numpy as np
 
 from companion.ekf import landmarks as lmk
 from companion.ekf.altimeter import facet_encloses_beam, facet_range, select_facet
-from companion.ekf.features import Detections, match_predicted
+from companion.ekf.features import Detections, match_predicted, ncc_search, reference_patch, warp_template
 from companion.ekf.filter import VEHICLE_DIM, InverseDepthEkf
 from companion.ekf.options import EkfOptions, cameras_for_mode
 from companion.ekf.ransac import low_innovation_inliers
@@ -49,6 +49,18 @@ class SlamPose:
     frames_since_match: int
 
 
+@dataclass(frozen=True)
+class _PatchRef:
+    """A landmark's first appearance: the 8-bit patch around its keypoint (pixel (0, 0) at ``origin``), the
+    keypoint ``uv`` and the camera pose then (R_world_cam, p_cam in world) as the filter had it."""
+
+    patch: np.ndarray
+    origin: np.ndarray
+    uv: np.ndarray
+    R_world_cam: np.ndarray
+    p_cam: np.ndarray
+
+
 @dataclass
 class SlamCounters:
     """Health counters (monotonic)."""
@@ -65,6 +77,7 @@ class SlamCounters:
     deleted_out_of_view: int = 0
     deleted_unmatched: int = 0
     ransac_rejected: int = 0  # gated matches the 1-point RANSAC refused (``ransac``)
+    patch_matches: int = 0  # landmarks SIFT missed that their patch found (``patch_cameras``), used
     matches: dict[str, int] = field(default_factory=dict)
 
 
@@ -91,6 +104,7 @@ class VisThermalSlam:
         self._hold_stamp = -(2**62)
         self._desc: dict[int, np.ndarray] = {}
         self._misses: dict[int, int] = {}
+        self._patches: dict[int, _PatchRef] = {}
         self._last_range: tuple[int, float] | None = None
         self._facet_ids: np.ndarray | None = None  # lm_id of the altimeter facet in use
         self._frames_since_match = 0
@@ -252,6 +266,7 @@ class VisThermalSlam:
         rows_Hl: list[np.ndarray] = []
         rows_res: list[np.ndarray] = []
         rows_cam: list[str] = []
+        rows_patch: list[bool] = []
         keep = np.ones(ekf.n_landmarks, bool)
         used_kp: dict[str, np.ndarray] = {}
         tracked_uv: dict[str, list[np.ndarray]] = {c: [] for c in self.camera_names}
@@ -292,6 +307,11 @@ class VisThermalSlam:
             match = match_predicted(
                 proj.uv[vis], S, lm_desc, det, o.gate_chi2, o.max_descriptor_distance, o.descriptor_ratio
             )
+            found = (
+                self._patch_search(cam, gi, proj.uv[vis], S, match, det.image)
+                if cam_name in o.patch_cameras and det.image is not None
+                else {}
+            )
             for k, li in enumerate(gi):
                 lid = int(ekf.lm_id[li])
                 j = match[k]
@@ -305,6 +325,15 @@ class VisThermalSlam:
                     if not o.anchor_descriptor:
                         self._desc[lid] = det.desc[j]
                     tracked_uv[cam_name].append(det.uv[j])
+                    rows_patch.append(False)
+                elif k in found:
+                    rows_lm.append(int(li))
+                    rows_Hp.append(proj.H_pose[vis[k]])
+                    rows_Hl.append(proj.H_lm[vis[k]])
+                    rows_res.append(found[k] - proj.uv[vis[k]])
+                    rows_cam.append(cam_name)
+                    tracked_uv[cam_name].append(found[k])
+                    rows_patch.append(True)
                 else:
                     self._missed(int(li), keep)
                     if keep[li]:
@@ -313,10 +342,11 @@ class VisThermalSlam:
         if rows_lm:
             lm_rows = np.array(rows_lm)
             accepted = self._update_matches(lm_rows, np.stack(rows_Hp), np.stack(rows_Hl), np.stack(rows_res))
-            for li, cam_name, ok in zip(lm_rows, rows_cam, accepted):
+            for li, cam_name, ok, by_patch in zip(lm_rows, rows_cam, accepted, rows_patch):
                 if ok:
                     self._misses[int(ekf.lm_id[li])] = 0
                     matched_count[cam_name] += 1
+                    self.counters.patch_matches += int(by_patch)
                 else:
                     self._missed(int(li), keep)
         for ci, cam_name in enumerate(self.camera_names):
@@ -325,6 +355,7 @@ class VisThermalSlam:
         for lid in ekf.lm_id[~keep]:
             self._desc.pop(int(lid), None)
             self._misses.pop(int(lid), None)
+            self._patches.pop(int(lid), None)
         ekf.remove_landmarks(keep)
         # --- new landmarks (eq. 8) ------------------------------------------------------------------
         for ci, cam_name in enumerate(self.camera_names):
@@ -343,6 +374,56 @@ class VisThermalSlam:
         if self._misses[lid] > self.opts.max_consecutive_misses and keep[li]:
             keep[li] = False
             self.counters.deleted_unmatched += 1
+
+    def _patch_search(
+        self,
+        cam: lmk.CameraModel,
+        gi: np.ndarray,
+        pred_uv: np.ndarray,
+        S: np.ndarray,
+        match: np.ndarray,
+        image: np.ndarray,
+    ) -> dict[int, np.ndarray]:
+        """Pixels found by patch search for the landmarks ``gi[k]`` SIFT left unmatched (``match[k] < 0``):
+        {k: (2,) uv}. The first patch is warped by the local affine motion of the ground plane (horizontal,
+        through the landmark's current estimate) from the camera that created it to the predicted one."""
+        ekf = self.ekf
+        assert ekf is not None
+        o = self.opts
+        R_wc = ekf.R_world_body @ cam.R_body_cam
+        p_cam = ekf.r + ekf.R_world_body @ cam.p_cam_in_body
+        found: dict[int, np.ndarray] = {}
+        for k in np.flatnonzero(match < 0):
+            ref = self._patches.get(int(ekf.lm_id[gi[k]]))
+            if ref is None:
+                continue
+            X = lmk.to_euclidean(ekf.y[gi[k] : gi[k] + 1])[0]
+            # three ground points ~10 px apart in the current image
+            step = 10.0 * float(np.linalg.norm(X - p_cam)) / float(cam.K[0, 0])
+            P = X + np.array([[0.0, 0.0, 0.0], [step, 0.0, 0.0], [0.0, step, 0.0]])
+            uv_ref = _pinhole(P, ref.R_world_cam, ref.p_cam, cam.K)
+            uv_cur = _pinhole(P, R_wc, p_cam, cam.K)
+            if uv_ref is None or uv_cur is None:
+                continue
+            D_cur = (uv_cur[1:] - uv_cur[0]).T
+            D_ref = (uv_ref[1:] - uv_ref[0]).T
+            if abs(np.linalg.det(D_cur)) < 1.0:
+                continue
+            L = D_ref @ np.linalg.inv(D_cur)
+            tmpl = warp_template(ref.patch, ref.origin, ref.uv, L, o.patch_half_px)
+            uv = ncc_search(
+                image,
+                tmpl,
+                pred_uv[k],
+                S[k],
+                o.gate_chi2,
+                o.patch_max_radius_px,
+                o.patch_min_score,
+                o.patch_min_margin,
+            )
+            if uv is not None:
+                found[int(k)] = uv
+        return found
 
     def _update_matches(self, lm: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, res: np.ndarray) -> np.ndarray:
         """EKF update with the gated matches of every camera (k of them); returns (k,) bool, the ones used.
@@ -464,10 +545,17 @@ class VisThermalSlam:
         rho0, sigma_rho = self._depth_prior(uv, cam)
         y, J_pose, J_uv = lmk.initialise(uv, rho0, ekf.r, ekf.R_world_body, cam)
         ids = ekf.add_landmarks(y, J_pose, J_uv, o.pixel_sigma_px, sigma_rho, ci)
+        keep_patch = cam_name in o.patch_cameras and det.image is not None
+        R_wc = ekf.R_world_body @ cam.R_body_cam
+        p_cam = ekf.r + ekf.R_world_body @ cam.p_cam_in_body
         for lid, j in zip(ids, sel):
             # a copy: a row view would keep the whole frame's descriptor array alive as long as the landmark
             self._desc[int(lid)] = det.desc[j].copy()
             self._misses[int(lid)] = 0
+            if keep_patch:
+                assert det.image is not None
+                patch, origin = reference_patch(det.image, det.uv[j], o.patch_ref_half_px)
+                self._patches[int(lid)] = _PatchRef(patch, origin, det.uv[j].copy(), R_wc, p_cam)
         self.counters.landmarks_added[cam_name] += len(ids)
 
     def _depth_prior(self, uv: np.ndarray, cam: lmk.CameraModel) -> tuple[np.ndarray, np.ndarray]:
@@ -514,3 +602,11 @@ class VisThermalSlam:
             position_sigma_max_m=ekf.position_sigma_max_m(),
             frames_since_match=self._frames_since_match,
         )
+
+
+def _pinhole(P: np.ndarray, R_world_cam: np.ndarray, p_cam: np.ndarray, K: np.ndarray) -> np.ndarray | None:
+    """(N,2) pixels of world points P (N,3) in a camera at (R_world_cam, p_cam); None if one is behind it."""
+    h = (P - p_cam) @ R_world_cam
+    if np.any(h[:, 2] <= 1e-9):
+        return None
+    return np.stack([K[0, 0] * h[:, 0] / h[:, 2] + K[0, 2], K[1, 1] * h[:, 1] / h[:, 2] + K[1, 2]], axis=1)

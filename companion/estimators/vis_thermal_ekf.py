@@ -118,6 +118,7 @@ class VisThermalEkfEstimator:
             "stale_frames": 0,
             "altimeter_updates": 0,
             "matches_refused": 0,  # gated matches the 1-point RANSAC refused
+            "patch_matches": 0,  # landmarks SIFT missed that their first patch found (patch_cameras)
         }
 
     # -- autopilot inputs ----------------------------------------------------------------------------
@@ -211,6 +212,7 @@ class VisThermalEkfEstimator:
                 stale_frames=c.stale_frames,
                 altimeter_updates=c.altimeter_updates,
                 matches_refused=c.ransac_rejected,
+                patch_matches=c.patch_matches,
             )
             ekf = self.slam.ekf
             if ekf is None or not ekf.is_finite() or not np.all(np.isfinite(pose.p_world)):
