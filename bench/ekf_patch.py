@@ -85,11 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trajectories", type=str, default=None, help="comma-separated names (default all)")
     p.add_argument("--workers", type=int, default=2)
     a = p.parse_args(argv)
-    names = (
-        a.trajectories.split(",")
-        if a.trajectories
-        else (["1", "6"] if a.quick else [str(i) for i in range(1, 11)])
-    )
+    names = T.trajectory_names(a.trajectories, a.quick)
     trials = a.trials if a.trials is not None else (1 if a.quick else 3)
     jobs = [(n, k, a.seed) for k in range(trials) for n in names]
     runs: list[dict[str, Any]] = []

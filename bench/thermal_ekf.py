@@ -206,6 +206,13 @@ def bench_options(detect_scale: float | None = None, initial_attitude_deg: float
     return o
 
 
+def trajectory_names(arg: str | None, quick: bool) -> list[str]:
+    """--trajectories "1,2,.." as a list; default all ten, --quick "1" and "6"."""
+    if arg:
+        return arg.split(",")
+    return ["1", "6"] if quick else [str(i) for i in range(1, 11)]
+
+
 def runs_seeds(results: list[dict[str, Any]]) -> int | list[int] | None:
     """The bench seed(s) the runs were made with, as their records say: one seed, a sorted list when runs
     logs of several seeds are pooled, None when a record does not say (logs written before it was kept)."""
@@ -502,11 +509,7 @@ def main(argv: list[str] | None = None) -> int:
         help=f"1-sigma of the initial attitude error, drawn and told to the filter (default {INITIAL_ATTITUDE_DEG})",
     )
     a = p.parse_args(argv)
-    names = (
-        a.trajectories.split(",")
-        if a.trajectories
-        else (["1", "6"] if a.quick else [str(i) for i in range(1, 11)])
-    )
+    names = trajectory_names(a.trajectories, a.quick)
     trials = a.trials if a.trials is not None else (3 if a.quick else 30)
     jobs = [(n, k, a.seed, a.detect_scale, a.initial_attitude_deg) for k in range(trials) for n in names]
     t0 = time.perf_counter()
