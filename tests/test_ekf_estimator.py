@@ -206,8 +206,14 @@ def test_patch_search_finds_the_true_projection_on_rendered_frames(flight):
     prediction 1.5 px off finds most of them, to a fraction of a pixel."""
     import cv2
 
-    from companion.ekf.features import SiftDetector, ncc_search, reference_patch, warp_template
-    from companion.ekf.slam import _pinhole
+    from companion.ekf.features import (
+        SiftDetector,
+        ground_plane_affine,
+        ncc_search,
+        reference_patch,
+        warp_template,
+    )
+    from companion.geometry import project
 
     cams, intr = flight["cams"], flight["intr"]
     K = np.array([[intr.fx, 0, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1.0]])
@@ -226,18 +232,12 @@ def test_patch_search_finds_the_true_projection_on_rendered_frames(flight):
         X = np.array(
             [cv2.getRectSubPix(ground[..., c], (1, 1), (float(u), float(v)))[0, 0] for c in range(3)]
         )
-        truth = _pinhole(X[None], *pose[1], K)
-        if (
-            not np.all(np.isfinite(X))
-            or truth is None
-            or not (30 < truth[0, 0] < 610 and 30 < truth[0, 1] < 450)
-        ):
+        truth, _ = project(K, *pose[1], X[None])
+        if not np.all(np.isfinite(X)) or not (30 < truth[0, 0] < 610 and 30 < truth[0, 1] < 450):
             continue
         n += 1
-        step = 10.0 * np.linalg.norm(X - pose[1][1]) / K[0, 0]
-        P = X + np.array([[0, 0, 0], [step, 0, 0], [0, step, 0.0]])
-        a, b = _pinhole(P, *pose[0], K), _pinhole(P, *pose[1], K)
-        L = (a[1:] - a[0]).T @ np.linalg.inv((b[1:] - b[0]).T)
+        L = ground_plane_affine(X, K, pose[0], pose[1])
+        assert L is not None
         patch, origin = reference_patch(d0.image, d0.uv[k], 21)
         template = warp_template(patch, origin, d0.uv[k], L, 7)
         uv = ncc_search(

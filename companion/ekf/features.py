@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from companion.ekf.options import EkfOptions
+from companion.geometry import project
 
 
 @dataclass(frozen=True)
@@ -147,6 +148,28 @@ def reference_patch(image: np.ndarray, uv: np.ndarray, half: int) -> tuple[np.nd
     size = 2 * half + 1
     patch = cv2.getRectSubPix(image, (size, size), (float(c[0]), float(c[1])))
     return patch, c - half
+
+
+def ground_plane_affine(
+    X: np.ndarray,
+    K: np.ndarray,
+    ref_pose: tuple[np.ndarray, np.ndarray],
+    cur_pose: tuple[np.ndarray, np.ndarray],
+) -> np.ndarray | None:
+    """(2,2) map of a small pixel offset in the current image to the reference image around world point X
+    (3,): the local affine motion of a horizontal ground plane through X, from three points ~10 px apart
+    projected into both cameras (poses (R_world_cam, p_cam_in_world)). None if a point is behind a camera or
+    the plane is seen edge-on."""
+    step = 10.0 * float(np.linalg.norm(X - cur_pose[1])) / float(K[0, 0])
+    P = X + np.array([[0.0, 0.0, 0.0], [step, 0.0, 0.0], [0.0, step, 0.0]])
+    uv_ref, z_ref = project(K, *ref_pose, P)
+    uv_cur, z_cur = project(K, *cur_pose, P)
+    if np.any(z_ref <= 1e-9) or np.any(z_cur <= 1e-9):
+        return None
+    D_cur = (uv_cur[1:] - uv_cur[0]).T
+    if abs(np.linalg.det(D_cur)) < 1.0:
+        return None
+    return (uv_ref[1:] - uv_ref[0]).T @ np.linalg.inv(D_cur)
 
 
 def warp_template(

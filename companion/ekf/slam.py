@@ -21,13 +21,20 @@ import numpy as np
 
 from companion.ekf import landmarks as lmk
 from companion.ekf.altimeter import facet_encloses_beam, facet_range, select_facet
-from companion.ekf.features import Detections, match_predicted, ncc_search, reference_patch, warp_template
+from companion.ekf.features import (
+    Detections,
+    ground_plane_affine,
+    match_predicted,
+    ncc_search,
+    reference_patch,
+    warp_template,
+)
 from companion.ekf.filter import VEHICLE_DIM, InverseDepthEkf
 from companion.ekf.options import EkfOptions, cameras_for_mode
 from companion.ekf.ransac import low_innovation_inliers
 from companion.ekf.sampling import budget_bandwidth, sample_new_landmarks
 from companion.ekf.so3 import euler_rate_matrix, rot_from_quat
-from companion.geometry import rpy_from_rot
+from companion.geometry import camera_pose, rpy_from_rot
 
 
 @dataclass(frozen=True)
@@ -390,26 +397,16 @@ class VisThermalSlam:
         ekf = self.ekf
         assert ekf is not None
         o = self.opts
-        R_wc = ekf.R_world_body @ cam.R_body_cam
-        p_cam = ekf.r + ekf.R_world_body @ cam.p_cam_in_body
+        cur_pose = camera_pose(ekf.R_world_body, ekf.r, cam.R_body_cam, cam.p_cam_in_body)
         found: dict[int, np.ndarray] = {}
         for k in np.flatnonzero(match < 0):
             ref = self._patches.get(int(ekf.lm_id[gi[k]]))
             if ref is None:
                 continue
             X = lmk.to_euclidean(ekf.y[gi[k] : gi[k] + 1])[0]
-            # three ground points ~10 px apart in the current image
-            step = 10.0 * float(np.linalg.norm(X - p_cam)) / float(cam.K[0, 0])
-            P = X + np.array([[0.0, 0.0, 0.0], [step, 0.0, 0.0], [0.0, step, 0.0]])
-            uv_ref = _pinhole(P, ref.R_world_cam, ref.p_cam, cam.K)
-            uv_cur = _pinhole(P, R_wc, p_cam, cam.K)
-            if uv_ref is None or uv_cur is None:
+            L = ground_plane_affine(X, cam.K, (ref.R_world_cam, ref.p_cam), cur_pose)
+            if L is None:
                 continue
-            D_cur = (uv_cur[1:] - uv_cur[0]).T
-            D_ref = (uv_ref[1:] - uv_ref[0]).T
-            if abs(np.linalg.det(D_cur)) < 1.0:
-                continue
-            L = D_ref @ np.linalg.inv(D_cur)
             tmpl = warp_template(ref.patch, ref.origin, ref.uv, L, o.patch_half_px)
             uv = ncc_search(
                 image,
@@ -545,16 +542,15 @@ class VisThermalSlam:
         rho0, sigma_rho = self._depth_prior(uv, cam)
         y, J_pose, J_uv = lmk.initialise(uv, rho0, ekf.r, ekf.R_world_body, cam)
         ids = ekf.add_landmarks(y, J_pose, J_uv, o.pixel_sigma_px, sigma_rho, ci)
-        keep_patch = cam_name in o.patch_cameras and det.image is not None
-        R_wc = ekf.R_world_body @ cam.R_body_cam
-        p_cam = ekf.r + ekf.R_world_body @ cam.p_cam_in_body
+        image = det.image if cam_name in o.patch_cameras else None
+        if image is not None:
+            R_wc, p_cam = camera_pose(ekf.R_world_body, ekf.r, cam.R_body_cam, cam.p_cam_in_body)
         for lid, j in zip(ids, sel):
             # a copy: a row view would keep the whole frame's descriptor array alive as long as the landmark
             self._desc[int(lid)] = det.desc[j].copy()
             self._misses[int(lid)] = 0
-            if keep_patch:
-                assert det.image is not None
-                patch, origin = reference_patch(det.image, det.uv[j], o.patch_ref_half_px)
+            if image is not None:
+                patch, origin = reference_patch(image, det.uv[j], o.patch_ref_half_px)
                 self._patches[int(lid)] = _PatchRef(patch, origin, det.uv[j].copy(), R_wc, p_cam)
         self.counters.landmarks_added[cam_name] += len(ids)
 
@@ -602,11 +598,3 @@ class VisThermalSlam:
             position_sigma_max_m=ekf.position_sigma_max_m(),
             frames_since_match=self._frames_since_match,
         )
-
-
-def _pinhole(P: np.ndarray, R_world_cam: np.ndarray, p_cam: np.ndarray, K: np.ndarray) -> np.ndarray | None:
-    """(N,2) pixels of world points P (N,3) in a camera at (R_world_cam, p_cam); None if one is behind it."""
-    h = (P - p_cam) @ R_world_cam
-    if np.any(h[:, 2] <= 1e-9):
-        return None
-    return np.stack([K[0, 0] * h[:, 0] / h[:, 2] + K[0, 2], K[1, 1] * h[:, 1] / h[:, 2] + K[1, 2]], axis=1)
