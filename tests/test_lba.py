@@ -236,6 +236,8 @@ def test_backend_gates_a_bad_fix_and_counts_it():
         current["k"] = k
         res = be.process(_first_kfs_job(snap_all, T, k))
     assert res.geo["status"] == "rejected"
+    # the outcome carries what the fix said (a replay checks it against truth)
+    assert np.allclose(res.geo["p_fix_world"], fixes[len(T) - 1])
     assert res.counters["fix_rejected"] == 1
     assert res.counters["fix_accepted"] >= len(T) - 4
     # the newest pose is not pulled towards the bad fix beyond the gate

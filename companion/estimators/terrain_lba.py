@@ -58,6 +58,32 @@ from companion.vo.odometry import VisualOdometry, VoOptions
 log = logging.getLogger(__name__)
 
 RESTART_BACKOFF_S = 5.0  # a replacement worker that failed to start is retried after this
+GEO_FIX_LOG_LEN = 2000  # key-frame geo-fixes kept in ``TerrainLbaEstimator.geo_fixes`` (~1 h at 15 Hz)
+
+
+@dataclass(frozen=True)
+class GeoFixRecord:
+    """One key frame's geo-fix as the back-end used it. stamp_us: the key frame's stamp. status: the
+    back-end's outcome ("accepted", "rejected", "pending", "aligned", ...). p_fix_world: (3,) body position
+    by the fix (NED, eq. 18 at the key frame's VO attitude). ground_fix_world: (3,) the ground point the
+    fix locates on the optical axis at the altimeter's range (what the adjustment holds; NaN without a
+    range)."""
+
+    stamp_us: int
+    status: str
+    quality: float
+    p_fix_world: np.ndarray
+    ground_fix_world: np.ndarray
+
+    @staticmethod
+    def of(stamp_us: int, geo: dict) -> GeoFixRecord:
+        return GeoFixRecord(
+            int(stamp_us),
+            str(geo.get("status", "")),
+            float(geo.get("quality", float("nan"))),
+            np.asarray(geo["p_fix_world"], float),
+            np.asarray(geo.get("ground_fix_world", [np.nan] * 3), float),
+        )
 
 
 @dataclass(frozen=True)
@@ -220,6 +246,8 @@ class TerrainLbaEstimator:
         self._sync_result: BackendResult | str | None = None
         self._cov_kf: tuple[int, np.ndarray] | None = None  # (kf id, body covariance) of the last result
         self.last_result: BackendResult | None = None
+        # the key frames' geo-fixes as the back-end reported them (the newest GEO_FIX_LOG_LEN), for replays
+        self.geo_fixes: deque[GeoFixRecord] = deque(maxlen=GEO_FIX_LOG_LEN)
         # front-end totals; ``counters`` adds the back-end's (see there)
         self._fe = {
             "frames": 0,
@@ -493,6 +521,9 @@ class TerrainLbaEstimator:
             res.outlier_lm,
         )
         self.last_result = res
+        kf = self.vo.kfs.get(res.newest_kf)
+        if "p_fix_world" in res.geo and kf is not None:
+            self.geo_fixes.append(GeoFixRecord.of(kf.stamp_us, res.geo))
         if np.all(np.isfinite(res.cov_newest)) and res.newest_kf in self.vo.kfs:
             T = self.vo.kfs[res.newest_kf].T_world_cam
             self._cov_kf = (

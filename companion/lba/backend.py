@@ -211,13 +211,21 @@ class Backend:
             return {"status": f"failed:{reason}", "quality": float(fix.quality)}, T_align
         k = job.newest_kf
         p_fix = np.asarray(fix.p_world, float)
-        out = {"kf": k, "quality": float(fix.quality), "residual_m": (p_fix - job.p_body_in_world).tolist()}
+        out = {
+            "kf": k,
+            "quality": float(fix.quality),
+            "residual_m": (p_fix - job.p_body_in_world).tolist(),
+            # what the fix says, for a replay to check against truth: the body position (eq. 18, at the
+            # key frame's VO attitude) and the ground point it locates on the optical axis at the range
+            "p_fix_world": p_fix.tolist(),
+        }
         # the located camera-frame point and its world position by the fix (see geo_on_ground)
         R_wc = job.snapshot.T_world_cam[-1, :3, :3]
         lever = np.asarray(job.p_body_in_cam, float)
         if self.opt.geo_on_ground and job.range_m is not None:
             lever = np.array([0.0, 0.0, float(job.range_m)])
             p_fix = p_fix + R_wc @ (lever - job.p_body_in_cam)
+            out["ground_fix_world"] = p_fix.tolist()
         var_scale = 1.0
         if self.opt.geo_quality_ref > 0:
             var_scale = max(1.0, self.opt.geo_quality_ref / max(float(fix.quality), 1e-3)) ** 2

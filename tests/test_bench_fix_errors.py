@@ -1,0 +1,53 @@
+"""``bench.terrain_slam.fix_errors``: the key frames' geo-fixes against the truth, on records with known
+errors (the body error adds height x the key frame's tilt error to the matcher's ground-point error)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.terrain_slam import fix_errors
+from companion.estimators.terrain_lba import GeoFixRecord
+from companion.geometry import rot_from_rpy
+
+
+def test_ground_and_body_errors_and_bias_from_known_offsets() -> None:
+    n = 30
+    times = np.arange(n) / 15.0
+    R_nadir = rot_from_rpy(0.0, 0.0, 0.0) @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    R_wc = np.repeat(R_nadir[None], n, axis=0)  # optical axis (third column) straight down
+    p_body = np.stack([np.array([4.0 * t, 1.0, -100.0]) for t in times])
+    p_cam = p_body.copy()
+    rng = np.full(n, 100.0)
+    ground = p_cam + rng[:, None] * R_wc[:, :, 2]
+    recs = []
+    for k in range(0, n, 5):
+        # matcher 0.1 m north of the true ground point; the key frame tilted so the body is 0.3 m east of it
+        g = ground[k] + [0.1, 0.0, 0.0]
+        b = p_body[k] + [0.1, 0.3, 0.0]
+        recs.append(
+            GeoFixRecord.of(
+                int(round(times[k] * 1e6)),
+                {"status": "accepted", "quality": 0.5, "p_fix_world": b, "ground_fix_world": g},
+            )
+        )
+    # a rejected fix far off is not counted
+    recs.append(
+        GeoFixRecord.of(
+            int(round(times[3] * 1e6)),
+            {"status": "rejected", "quality": 0.2, "p_fix_world": p_body[3] + 20.0},
+        )
+    )
+    out = fix_errors(recs, times, p_body, R_wc, p_cam, rng)
+    assert out["n_used"] == 6 and out["n_reported"] == 7
+    assert out["ground_m"] == pytest.approx(0.1, abs=1e-9)
+    assert out["bias_ne_m"] == pytest.approx([0.1, 0.0], abs=1e-9)
+    assert out["body_m"] == pytest.approx(np.hypot(0.1, 0.3), abs=1e-9)
+    assert out["quality_mean"] == pytest.approx(0.5)
+
+
+def test_no_used_fix_reports_counts_only() -> None:
+    rec = GeoFixRecord.of(0, {"status": "pending", "quality": 0.3, "p_fix_world": [0.0, 0.0, -100.0]})
+    out = fix_errors([rec], np.zeros(1), np.zeros((1, 3)), np.eye(3)[None], np.zeros((1, 3)), np.ones(1))
+    assert out == {"n_used": 0, "n_reported": 1}
+    assert np.isnan(rec.ground_fix_world).all()
