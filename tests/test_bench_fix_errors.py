@@ -7,15 +7,15 @@ import numpy as np
 import pytest
 
 from bench.terrain_slam import fix_errors
+from companion.constants import R_BODY_CAM_NADIR
 from companion.estimators.terrain_lba import GeoFixRecord
-from companion.geometry import rot_from_rpy
 
 
 def test_ground_and_body_errors_and_bias_from_known_offsets() -> None:
     n = 30
     times = np.arange(n) / 15.0
-    R_nadir = rot_from_rpy(0.0, 0.0, 0.0) @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    R_wc = np.repeat(R_nadir[None], n, axis=0)  # optical axis (third column) straight down
+    R_wc = np.repeat(R_BODY_CAM_NADIR[None], n, axis=0)  # level, heading north: optical axis straight down
+    assert np.allclose(R_wc[0][:, 2], [0.0, 0.0, 1.0])
     p_body = np.stack([np.array([4.0 * t, 1.0, -100.0]) for t in times])
     p_cam = p_body.copy()
     rng = np.full(n, 100.0)

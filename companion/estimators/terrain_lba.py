@@ -58,7 +58,9 @@ from companion.vo.odometry import VisualOdometry, VoOptions
 log = logging.getLogger(__name__)
 
 RESTART_BACKOFF_S = 5.0  # a replacement worker that failed to start is retried after this
-GEO_FIX_LOG_LEN = 2000  # key-frame geo-fixes kept in ``TerrainLbaEstimator.geo_fixes`` (~1 h at 15 Hz)
+GEO_FIX_LOG_LEN = (
+    2000  # key-frame geo-fixes kept in ``geo_fixes``: >= 44 min (key frames >= 20 frames apart, 15 Hz)
+)
 
 
 @dataclass(frozen=True)
