@@ -216,7 +216,7 @@ def test_patch_search_finds_the_true_projection_on_rendered_frames(flight):
     from companion.geometry import project
 
     cams, intr = flight["cams"], flight["intr"]
-    K = np.array([[intr.fx, 0, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1.0]])
+    K = intr.K
     pose = [
         camera_pose(flight["states"][i].R_world_body, flight["states"][i].p_world, R_BODY_CAM_NADIR)
         for i in (0, 3)

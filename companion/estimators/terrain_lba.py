@@ -58,9 +58,8 @@ from companion.vo.odometry import VisualOdometry, VoOptions
 log = logging.getLogger(__name__)
 
 RESTART_BACKOFF_S = 5.0  # a replacement worker that failed to start is retried after this
-GEO_FIX_LOG_LEN = (
-    2000  # key-frame geo-fixes kept in ``geo_fixes``: >= 44 min (key frames >= 20 frames apart, 15 Hz)
-)
+# key-frame geo-fixes kept in ``geo_fixes``: >= 44 min of flight (key frames >= 20 frames apart, 15 Hz)
+GEO_FIX_LOG_LEN = 2000
 
 
 @dataclass(frozen=True)
@@ -526,8 +525,8 @@ class TerrainLbaEstimator:
         kf = self.vo.kfs.get(res.newest_kf)
         if "p_fix_world" in res.geo and kf is not None:
             self.geo_fixes.append(GeoFixRecord.of(kf.stamp_us, res.geo))
-        if np.all(np.isfinite(res.cov_newest)) and res.newest_kf in self.vo.kfs:
-            T = self.vo.kfs[res.newest_kf].T_world_cam
+        if np.all(np.isfinite(res.cov_newest)) and kf is not None:
+            T = kf.T_world_cam
             self._cov_kf = (
                 res.newest_kf,
                 body_covariance(T, res.cov_newest, self.R_body_cam, self.p_body_in_cam),
