@@ -161,6 +161,13 @@ def cmd_watch(connect: list[str], key: str, count: int, timeout_s: float, raw: b
     return code
 
 
+def configure_opencv(threads: int) -> None:
+    """OpenCV's threads per call (``daemon.opencv_threads``); 0 = OpenCV's default, one per core."""
+    import cv2
+
+    cv2.setNumThreads(threads if threads > 0 else -1)  # OpenCV: a negative count restores its default
+
+
 def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     """Run the daemon until SIGINT/SIGTERM (or ``stop`` is set). Returns the exit code."""
     from companion.daemon import Daemon
@@ -171,6 +178,7 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     from companion.io.zenoh_io import CameraTopic, FrameSubscriber, StatusPublisher, open_session
 
     stop = stop or threading.Event()
+    configure_opencv(cfg.daemon.opencv_threads)
     estimator = build_estimator(cfg)
     estimate_log = None
     if cfg.daemon.estimates_log:

@@ -178,6 +178,10 @@ class DaemonConfig(_Strict):
     # record every estimate: "<path>.csv" (all, with what became of each) and "<path>.tum" (the ones sent,
     # for evo); "{time}" in the path is the start time; "" = off (``companion.io.estimate_log``)
     estimates_log: str = ""
+    # threads OpenCV may use inside one call (cv2.setNumThreads), 0 = its default, one per core. One saves CPU
+    # per frame for the rest of the companion (the terrain back-end, Zenoh, MAVLink) at the same latency with
+    # georef and a few ms more with terrain_lba (``python -m bench latency --opencv-threads N``; README)
+    opencv_threads: Annotated[int, Field(ge=0, le=64)] = 1
 
 
 class CompanionConfig(_Strict):

@@ -179,3 +179,24 @@ def test_cli_exits_2_with_a_clear_message(tmp_path: Path) -> None:
         timeout=60,
     )
     assert r.returncode == 2 and "not valid TOML" in r.stderr
+
+
+def test_opencv_threads_from_the_config() -> None:
+    import cv2
+
+    from companion.cli import configure_opencv
+
+    cfg = parse_config(MINIMAL)
+    assert cfg.daemon.opencv_threads == 1
+    with pytest.raises(ConfigError, match="opencv_threads"):
+        apply_overrides(cfg, ["daemon.opencv_threads=-2"], "test")
+    before = cv2.getNumThreads()
+    try:
+        configure_opencv(apply_overrides(cfg, ["daemon.opencv_threads=3"], "test").daemon.opencv_threads)
+        assert cv2.getNumThreads() == 3
+        configure_opencv(cfg.daemon.opencv_threads)
+        assert cv2.getNumThreads() == 1
+        configure_opencv(0)  # OpenCV's default: one per core
+        assert cv2.getNumThreads() == cv2.getNumberOfCPUs()
+    finally:
+        cv2.setNumThreads(before)

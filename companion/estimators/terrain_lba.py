@@ -34,6 +34,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import cv2
 import numpy as np
 from scipy.stats import trim_mean
 
@@ -164,8 +165,10 @@ def _make_backend(options: BackendOptions, geo_args: tuple | None) -> Backend:
     return Backend(options, locate, terrain)
 
 
-def _worker_main(conn: Any, options: BackendOptions, geo_args: tuple | None) -> None:
-    """Worker process: build the back-end, then answer jobs until None."""
+def _worker_main(conn: Any, options: BackendOptions, geo_args: tuple | None, opencv_threads: int) -> None:
+    """Worker process: build the back-end, then answer jobs until None. ``opencv_threads``: the parent's
+    OpenCV thread count (``daemon.opencv_threads``), which a spawned interpreter does not inherit."""
+    cv2.setNumThreads(opencv_threads)
     backend = _make_backend(options, geo_args)
     conn.send("ready")
     while True:
@@ -331,7 +334,7 @@ class TerrainLbaEstimator:
         conn, child = ctx.Pipe()
         proc = ctx.Process(
             target=_worker_main,
-            args=(child, self.opt.backend, self._geo_args),
+            args=(child, self.opt.backend, self._geo_args, cv2.getNumThreads()),
             daemon=True,
             name="terrain_lba",
         )
