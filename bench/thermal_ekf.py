@@ -416,11 +416,13 @@ def daemon_path_rate(n_pairs: int = 60, detect_scale: float | None = None) -> di
     """Frame pairs per second through ``VisThermalEkfEstimator.on_frames`` in dual mode (the daemon's path:
     both SIFT detections in parallel threads, then the filter step), on pre-rendered frames of trajectory 1,
     with IMU and altimeter samples fed between frames as the daemon does. Measured alone (no bench workers)."""
+    from companion.cli import configure_opencv
+    from companion.config import DaemonConfig
     from sim_bridge.europa.sensors import altimeter_samples
     from sim_bridge.europa.trajectories import paper_trajectories
     from sim_bridge.trajectory import imu_samples
 
-    cv2.setNumThreads(2)
+    configure_opencv(DaemonConfig().opencv_threads)  # as the daemon runs it (``daemon.opencv_threads``)
     world, cams = _world()
     traj = paper_trajectories(world, 12345)["1"]
     t_frames = traj.t0_s + np.arange(n_pairs) / CAMERA_HZ
