@@ -39,7 +39,7 @@ def _cpu_s(pid: int) -> float:
 def run(
     rate_hz: float, duration_s: float, estimator: str, seed: int, opencv_threads: int | None = None
 ) -> dict:
-    from companion.config import DaemonConfig
+    from companion.config import load_config
     from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
     from companion.io.dem_store import save_dem_npz
     from companion.io.frames import encode_image
@@ -110,7 +110,9 @@ def run(
     }
     if opencv_threads is not None:
         overrides["daemon.opencv_threads"] = opencv_threads
-    cmd = [sys.executable, "-m", "companion", "run", "--config", str(ROOT / "configs/sim_mars.toml")]
+    config = ROOT / "configs/sim_mars.toml"
+    daemon_cfg = load_config(config).daemon  # what the daemon runs with unless overridden
+    cmd = [sys.executable, "-m", "companion", "run", "--config", str(config)]
     cmd += [arg for k, v in overrides.items() for arg in ("--set", f"{k}={json.dumps(v)}")]
     log = open(tmp / "companion.log", "w")
     ap.start()
@@ -145,7 +147,7 @@ def run(
     span_s = n / rate_hz
     return {
         "estimator": estimator,
-        "opencv_threads": opencv_threads if opencv_threads is not None else DaemonConfig().opencv_threads,
+        "opencv_threads": opencv_threads if opencv_threads is not None else daemon_cfg.opencv_threads,
         "rate_hz": rate_hz,
         "duration_s": span_s,
         "frames_sent": n,

@@ -208,6 +208,7 @@ def run_flight(
     spec_yaw_bias = sim.yaw_bias
     distance = traj.distance_m()
     out: dict[str, Any] = {}
+    axes = sim.true_axes() if any(e.geo_fixes for e in est.values()) else None  # once for every method
     for n, e in est.items():
         counters = e.backend_counters()
         records = list(e.geo_fixes)
@@ -240,8 +241,8 @@ def run_flight(
         res["max_ms"] = float(lt.max() * 1e3)
         res["backend"] = counters
         res["w_geo"] = methods[n].w_geo
-        if records:
-            res["geo_fix"] = fix_errors(records, times, p_true, *sim.true_axes())
+        if records and axes is not None:
+            res["geo_fix"] = fix_errors(records, times, p_true, *axes)
         out[n] = res
     out["_flight"] = {
         "scene": spec.scene_id,
