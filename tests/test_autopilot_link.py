@@ -58,6 +58,14 @@ class Gcs:
     def of(self, name: str) -> list[Any]:
         return [m for _, m in list(self.msgs) if m.get_type() == name]
 
+    def hello(self) -> None:
+        """Like a real GCS, repeat the heartbeat until the autopilot answers: the first datagram may arrive
+        before the simulated autopilot's socket is bound (seen on a loaded machine: then nothing ever comes)."""
+        for _ in range(20):
+            self.send(self.mav.heartbeat_encode(18, 8, 0, 0, 4))
+            if wait_for(lambda: self.msgs, 0.5):
+                return
+
     def close(self) -> None:
         self._stop.set()
         self._thread.join(1.0)
@@ -72,12 +80,7 @@ def sim_and_gcs():
     )
     sim.start()
     gcs = Gcs(port)
-    # like a real GCS, repeat the heartbeat until the autopilot answers: the first datagram may arrive
-    # before the simulated autopilot's socket is bound (seen on a loaded machine: then nothing ever comes)
-    for _ in range(20):
-        gcs.send(gcs.mav.heartbeat_encode(18, 8, 0, 0, 4))
-        if wait_for(lambda: gcs.msgs, 0.5):
-            break
+    gcs.hello()
     yield sim, gcs
     gcs.close()
     sim.stop()
@@ -221,7 +224,7 @@ def test_scaled_imu_units_and_seeded_biases() -> None:
         sim = SimAutopilotLink(f"udpin:127.0.0.1:{port}", truth=hover_truth(10.0), options=opts)
         sim.start()
         gcs = Gcs(port)
-        gcs.send(gcs.mav.heartbeat_encode(18, 8, 0, 0, 4))
+        gcs.hello()
         assert wait_for(lambda: len(gcs.of("SCALED_IMU")) > 20)
         gcs.close()
         sim.stop()
