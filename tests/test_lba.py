@@ -176,6 +176,7 @@ def _snapshot(T, P, ok, ol, opx):
 class _Fix:
     def __init__(self, p):
         self.ok, self.reason, self.p_world, self.quality = True, "", np.asarray(p, float), 0.5
+        self.rotation_rad, self.rotation_scale_quality = 0.0, 0.5
 
 
 def _first_kfs_job(snap_all: WindowSnapshot, T: np.ndarray, k: int, held: bool = True) -> BackendJob:
@@ -227,7 +228,7 @@ def test_backend_gates_a_bad_fix_and_counts_it():
     fixes[len(T) - 1] = truth[len(T) - 1] + np.array([0.0, 20.0, 0.0])  # scene-07-like failure
     current = {"k": 0}
 
-    def locate(image, R, p, alt):
+    def locate(image, R, p, alt, solve_rotation_scale):
         return _Fix(fixes[current["k"]])
 
     be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0)), locate)
@@ -243,6 +244,53 @@ def test_backend_gates_a_bad_fix_and_counts_it():
     # the newest pose is not pulled towards the bad fix beyond the gate
     gate_m = np.sqrt(be.opt.geo_gate_chi2) * be.opt.geo_sigma_m
     assert np.linalg.norm(res.T_world_cam[-1, :3, 3] - T[-1, :3, 3]) < min(gate_m, 0.5)
+
+
+def _fly_with_heading_error(heading: bool, yaw_err_deg: float, rot_noise_deg: float, seed: int = 5):
+    """A start-up over ``_scene``: the map turned by -yaw_err_deg (a compass that far off), good fixes, and a
+    matcher whose heading estimate (true yaw - given yaw) has ``rot_noise_deg`` of noise. The key frames span
+    about 20 m RMS, short of ``align_min_spread_m``: only the matcher's heading can align the yaw. Returns
+    the back-end and the map's remaining yaw error (deg) after the corrections it sent."""
+    T, P, ok, ol, opx, rng = _scene(seed)
+    d = np.radians(-yaw_err_deg)
+    turn = make_T(rot_from_rpy(0.0, 0.0, d), T[0, :3, 3] - rot_from_rpy(0.0, 0.0, d) @ T[0, :3, 3])
+    T_map = np.einsum("ij,njk->nik", turn, T)
+    P_map = P @ turn[:3, :3].T + turn[:3, 3]
+    fixes = {i: T[i, :3, 3] + rng.normal(0, 0.2, 3) for i in range(len(T))}
+    current = {"k": 0}
+
+    def locate(image, R, p, alt, solve_rotation_scale):
+        f = _Fix(fixes[current["k"]])
+        if solve_rotation_scale:
+            R_true = T[current["k"], :3, :3] @ R_BODY_CAM_NADIR.T
+            yaw_true = np.arctan2(R_true[1, 0], R_true[0, 0])
+            f.rotation_rad = (
+                yaw_true - np.arctan2(R[1, 0], R[0, 0]) + np.radians(rot_noise_deg) * rng.normal()
+            )
+        return f
+
+    be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0), heading_from_matcher=heading), locate)
+    for k in range(2, len(T)):
+        current["k"] = k
+        snap_all = _snapshot(T_map, P_map, ok, ol, opx)
+        res = be.process(_first_kfs_job(snap_all, T_map, k))
+        # the front-end moves its whole map by the alignment (``VisualOdometry.apply_correction``)
+        T_map = np.einsum("ij,njk->nik", res.T_align, T_map)
+        P_map = P_map @ res.T_align[:3, :3].T + res.T_align[:3, 3]
+    R_rel = T_map[-1, :3, :3] @ T[-1, :3, :3].T
+    return be, float(np.degrees(np.arctan2(R_rel[1, 0], R_rel[0, 0])))
+
+
+def test_matcher_heading_turns_the_start_up_map_before_the_fixes_spread():
+    be, left_deg = _fly_with_heading_error(True, 2.5, 0.2)
+    assert be.yaw_aligned and len(be.heading_samples) >= be.opt.heading_min_samples
+    assert abs(left_deg) < 0.25
+    # without it the yaw waits for the fixes to spread 25 m, which this flight does not reach
+    be0, left0_deg = _fly_with_heading_error(False, 2.5, 0.2)
+    assert not be0.yaw_aligned and abs(left0_deg) > 2.0
+    # estimates that disagree (a matcher finding wrong peaks) do not turn the map
+    be1, left1_deg = _fly_with_heading_error(True, 2.5, 8.0)
+    assert not be1.yaw_aligned and abs(left1_deg) > 2.0
 
 
 def test_alignment_recovers_yaw_and_translation_despite_an_outlier():

@@ -153,8 +153,8 @@ def _make_backend(options: BackendOptions, geo_args: tuple | None) -> Backend:
         dem, sun, intrinsics, R_body_cam, georef_options = geo_args
         geo = GeoReferencer(dem, sun, intrinsics, R_body_cam, georef_options)
 
-        def locate(image, R_world_body, p_pred_world, alt_agl_m):  # noqa: ANN001, ANN202
-            return geo.locate(image, R_world_body, p_pred_world, alt_agl_m)
+        def locate(image, R_world_body, p_pred_world, alt_agl_m, solve_rotation_scale):  # noqa: ANN001, ANN202
+            return geo.locate(image, R_world_body, p_pred_world, alt_agl_m, solve_rotation_scale)
 
         # the landmark-on-DEM term reads the matcher's smoothed, hole-filled DEM (its noise would be
         # slopes), holes put back

@@ -23,8 +23,9 @@ from companion.lba.align import align_yaw_translation
 from companion.lba.window import LbaOptions, WindowProblem, solve_window
 from companion.vo.odometry import WindowSnapshot
 
-Locator = Callable[[np.ndarray, np.ndarray, np.ndarray, float | None], Any]
-"""``locate(image, R_world_body, p_pred_world, alt_agl_m) -> GeoFix`` (companion.georef.georef)."""
+Locator = Callable[[np.ndarray, np.ndarray, np.ndarray, float | None, bool], Any]
+"""``locate(image, R_world_body, p_pred_world, alt_agl_m, solve_rotation_scale) -> GeoFix``
+(companion.georef.georef)."""
 
 
 def ground_below(dem: Dem, p_world: np.ndarray) -> np.ndarray:
@@ -57,6 +58,17 @@ class BackendOptions:
     align_max_rms_m: float = 2.0  # an alignment worse than this is not trusted (wait for more fixes)
     align_min_spread_m: float = 25.0  # the yaw is aligned only when the fixes spread this far (RMS about
     # their centre): with fixes good to ~0.5 m, a shorter base turns the yaw by more than the compass is off
+    # start-up heading from the matcher: until the yaw is aligned, each key frame's fix also recovers the
+    # heading error of the map (``GeoReferencer.locate(solve_rotation_scale=True)``, Fourier-Mellin then a
+    # peak search); once the median of these estimates is known to ``heading_max_se_deg`` the map is turned
+    # by it about its fixes' centre. Mars has no compass worth the name: the terrain gives the heading long
+    # before the fixes spread ``align_min_spread_m``.
+    heading_from_matcher: bool = True
+    heading_min_samples: int = 5  # estimates needed (their median is robust to a wrong peak or two)
+    heading_min_quality: float = 0.3  # an estimate counts when the translation peak at it is this high:
+    # below, on the dunes, gravel and canyon scenes (peaks 0.19-0.25), the recovered rotation is off by
+    # 0.6-0.9 deg median with wild outliers, no better than a compass; from 0.3 up, 0.1-0.35 deg
+    heading_max_se_deg: float = 0.5  # standard error of the median (1.25 x robust sigma / sqrt(n)) to act
     realign_after_rejections: int = 6  # this many gated fixes in a row that agree with each other:
     # the VO frame is off, not the fixes -> eq. 21 again on them
     drift_sigma_per_m: float = 0.02  # VO position sigma growth per metre since the last adjusted key frame
@@ -165,6 +177,8 @@ class Backend:
         self.aligned = False
         self.yaw_aligned = False
         self.startup_kfs: set[int] = set()
+        # the matcher's heading errors (rad) while the yaw is not known
+        self.heading_samples: list[float] = []
         self.cov_pos_newest: np.ndarray | None = None  # world position covariance of the last newest kf
 
     def _fix_cov(self) -> np.ndarray:
@@ -197,13 +211,68 @@ class Backend:
         T[:3, 3] /= S  # the rotation is about down, so it commutes with the scaling of down
         return T, [k for k, ok in zip(ks, a.inliers) if ok], a.yaw_observable
 
+    def _release_startup_rotations(self) -> None:
+        """The yaw is known: the start-up key frames' rotation may now be moved by the adjustment."""
+        released = np.diag([self.opt.initial_sigma_rad**2] * 3 + [self.opt.initial_sigma_m**2] * 3)
+        for kk in self.startup_kfs:
+            if kk in self.cov:
+                self.cov[kk] = released
+
+    def _try_heading(self, s: WindowSnapshot) -> tuple[np.ndarray, float] | None:
+        """(T_world_vo turning the map about its fixes' centre by the matcher's median heading error, that
+        angle), or None while the estimates are too few or too scattered."""
+        r = np.asarray(self.heading_samples, float)
+        if len(r) < max(self.opt.heading_min_samples, 1):
+            return None
+        d = float(np.median(r))
+        se = 1.2533 * 1.4826 * float(np.median(np.abs(r - d))) / np.sqrt(len(r))
+        if se > np.radians(self.opt.heading_max_se_deg):
+            return None
+        in_snap = set(int(k) for k in s.kf_ids)
+        ks = [k for k in sorted(self.fixes) if k in in_snap]
+        if not ks:
+            return None
+        c = self._vo_points(s, self.fixes, ks).mean(axis=0)
+        cz, sz = np.cos(d), np.sin(d)
+        R = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])  # about down: true yaw = yaw + d
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = c - R @ c
+        return T, d
+
     def _geo(self, job: BackendJob) -> tuple[dict, np.ndarray]:
         """Geo-reference the newest key frame; returns (outcome, T_align)."""
+        want_heading = self.opt.heading_from_matcher and not self.yaw_aligned
+        out, T_align = self._geo_fix(job, want_heading)
+        if want_heading and self.aligned and not self.yaw_aligned:
+            s = (
+                job.snapshot
+                if np.allclose(T_align, np.eye(4))
+                else _transform_snapshot(job.snapshot, T_align)
+            )
+            res = self._try_heading(s)
+            if res is not None:
+                T_align = res[0] @ T_align
+                self.yaw_aligned = True
+                self._release_startup_rotations()
+                self.counters["alignments"] += 1
+                out["heading_deg"] = float(np.degrees(res[1]))
+        return out, T_align
+
+    def _geo_fix(self, job: BackendJob, want_heading: bool) -> tuple[dict, np.ndarray]:
+        """The fix of the newest key frame: gate, alignments (eq. 21); returns (outcome, T_align).
+        want_heading: also ask the matcher for the heading error (kept in ``heading_samples``)."""
         T_align = np.eye(4)
         if self.locate is None or job.image is None:
             return {"status": "none"}, T_align
         self.counters["fix_attempts"] += 1
-        fix = self.locate(job.image, job.R_world_body, job.p_body_in_world, job.alt_agl_m)
+        fix = self.locate(job.image, job.R_world_body, job.p_body_in_world, job.alt_agl_m, False)
+        if want_heading and fix.ok:
+            # a second search for the heading (and height) error only: the fix itself stays the plain one,
+            # at the altimeter's height
+            rs = self.locate(job.image, job.R_world_body, job.p_body_in_world, job.alt_agl_m, True)
+            if rs.ok and rs.rotation_scale_quality >= self.opt.heading_min_quality:
+                self.heading_samples.append(float(rs.rotation_rad))
         if not fix.ok or fix.quality < self.opt.geo_min_quality:
             reason = fix.reason or "low_quality"
             self.fail_reasons[reason] = self.fail_reasons.get(reason, 0) + 1
@@ -275,12 +344,7 @@ class Backend:
                     T_align = res[0]
                     self.yaw_aligned = True
                     # the start-up key frames' rotation is released now that the yaw is known
-                    released = np.diag(
-                        [self.opt.initial_sigma_rad**2] * 3 + [self.opt.initial_sigma_m**2] * 3
-                    )
-                    for kk in self.startup_kfs:
-                        if kk in self.cov:
-                            self.cov[kk] = released
+                    self._release_startup_rotations()
                     self.counters["alignments"] += 1
                     out["status"] = "aligned_yaw"
             return out, T_align
@@ -291,6 +355,7 @@ class Backend:
             res = self._try_align(job.snapshot, self.rejected, self.opt.align_min_spread_m)
             if res is not None:
                 T_align, inliers, self.yaw_aligned = res
+                self.heading_samples.clear()  # measured against the old alignment's yaw
                 # the old fixes were taken in the old alignment: they are superseded
                 self.fixes = {kk: self.rejected[kk] for kk in inliers}
                 self.counters["fix_accepted"] += len(inliers)
