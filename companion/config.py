@@ -130,6 +130,9 @@ class TerrainLbaConfig(_Strict):
     min_features_kf: Annotated[int, Field(ge=1)] = 50
     max_tracked_ratio_kf: Annotated[float, Field(gt=0, le=1)] = 0.9
     joint_shift: bool = True  # key-frame fixes: shift estimated jointly with the fitted reference (README)
+    # at start-up, turn the map by the heading error the matcher recovers from the terrain (README); false:
+    # keep the compass heading until the fixes have spread 25 m
+    heading_from_matcher: bool = True
     # landmarks held on the DEM in the adjustment: the DEM's vertical / horizontal error (m); 0 = off
     terrain_sigma_m: Annotated[float, Field(ge=0)] = 0.5
     terrain_sigma_horizontal_m: Annotated[float, Field(ge=0)] = 0.5

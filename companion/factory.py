@@ -65,7 +65,11 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             terrain_sigma_horizontal_m=t.terrain_sigma_horizontal_m,
             attitude_sigma_rad=t.attitude_sigma_rad,
         )
-        lba_opt = replace(lba_opt, georef=replace(lba_opt.georef, joint_shift=t.joint_shift))
+        lba_opt = replace(
+            lba_opt,
+            georef=replace(lba_opt.georef, joint_shift=t.joint_shift),
+            backend=replace(lba_opt.backend, heading_from_matcher=t.heading_from_matcher),
+        )
         return TerrainLbaEstimator(
             lba_opt,
             cam.intrinsics(),

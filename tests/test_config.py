@@ -123,6 +123,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         "min_features_kf": 60,
         "max_tracked_ratio_kf": 0.8,
         "joint_shift": False,
+        "heading_from_matcher": False,
         "terrain_sigma_m": 0.7,
         "terrain_sigma_horizontal_m": 0.3,
         "attitude_sigma_rad": 0.004,
@@ -144,6 +145,8 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         for key, value in changed.items():
             if key == "joint_shift":
                 assert opt.georef.joint_shift is value
+            elif key == "heading_from_matcher":
+                assert opt.backend.heading_from_matcher is value
             else:
                 assert getattr(opt, key) == value, key
         assert (lba.w_geo, lba.terrain_sigma_m, lba.terrain_sigma_horizontal_m) == (5.0, 0.7, 0.3)
