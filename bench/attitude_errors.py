@@ -15,7 +15,10 @@ away from where it is (0.35 m per 0.2 degree at 100 m). This benchmark measures 
 - ``tilt bias``: every ATTITUDE sample's roll off by ``--degrees`` (as a whole flight's bias);
 - ``mount error``: the camera pitched forward by ``--degrees`` on the vehicle, the estimator told nadir;
 - ``mount error, calibrated``: the same frames, the estimator given the true mount (what
-  ``cameras.nadir.extra_rpy_deg`` in the configuration is for).
+  ``cameras.nadir.extra_rpy_deg`` in the configuration is for);
+- ``compass bias``: the compass (initial yaw and every ATTITUDE yaw) off by ``--compass-degrees`` for the
+  whole flight, over ``--compass-scene`` (default 01: the start-up heading search needs the matcher's peak at
+  0.3 or more, which 08 is at the edge of), with the heading search (``heading_from_matcher``) and without.
 
 Per case the APE (evo, no alignment) mean / rmse / max, its horizontal and vertical parts, and the mean
 horizontal error in the vehicle's heading frame (forward, right; ``mean_error_forward_right_m``): a roll bias
@@ -40,6 +43,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", default="08", help="scene id (default 08, the Tables 4 and 5 scene)")
     p.add_argument("--degrees", type=float, default=0.2, help="size of the tilt bias and the mount error")
     p.add_argument("--duration-s", type=float, default=None, help="flight duration (default 190, quick 30)")
+    p.add_argument("--compass-degrees", type=float, default=5.0, help="compass bias of the compass case")
+    p.add_argument("--compass-scene", default="01", help="scene of the compass case")
     a = p.parse_args(argv)
     dur = a.duration_s or (30.0 if a.quick else 190.0)
     ang = float(np.radians(a.degrees))
@@ -61,12 +66,29 @@ def main(argv: list[str] | None = None) -> int:
             },
             ("calibrated",),
         ),
+        (
+            "compass_bias",
+            FlightSpec(
+                a.compass_scene, "circular", dur, a.seed, yaw_bias_rad=float(np.radians(a.compass_degrees))
+            ),
+            {
+                "heading_search": f"compass {a.compass_degrees:g} deg off (scene {a.compass_scene})",
+                "compass_only": f"compass {a.compass_degrees:g} deg off, no heading search",
+            },
+            (),
+        ),
     ]
+    no_heading = replace(lba, backend=replace(lba.backend, heading_from_matcher=False))
     results: dict[str, Any] = {"quick": a.quick, "seed": a.seed, "scene": a.scene, "degrees": a.degrees}
     rows = []
     for case, spec, names, known in cases:
-        print(f"  {case}: scene {a.scene} circular {dur:.0f}s", flush=True)
-        r = run_flight(spec, {n: lba for n in names}, log=False, mount_known=known)
+        print(f"  {case}: scene {spec.scene_id} circular {dur:.0f}s", flush=True)
+        r = run_flight(
+            spec,
+            {n: no_heading if n == "compass_only" else lba for n in names},
+            log=False,
+            mount_known=known,
+        )
         f = r["_flight"]
         print(f"    done in {f['wall_s']:.0f}s", flush=True)
         for n, label in names.items():

@@ -62,6 +62,8 @@ class FlightSpec:
     # is told the nominal nadir mount unless the method is listed in ``run_flight``'s ``mount_known``
     tilt_bias_rad: tuple[float, float] = (0.0, 0.0)
     mount_error_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # the compass's bias (rad, on the initial yaw and every ATTITUDE yaw); None: drawn from ``SimNoise``
+    yaw_bias_rad: float | None = None
 
 
 def make_trajectory(kind: str, duration_s: float, ground_m: float) -> Trajectory:
@@ -122,7 +124,9 @@ class Simulation:
         self.renderer = VisibleRenderer(self.scene.dem, self.scene.albedo, self.scene.sun, self.intr)
         self.noise = SimNoise()  # the simulated autopilot's telemetry noise (attitude, compass bias, range)
         self.rng = np.random.default_rng([spec.seed, 7, int(spec.scene_id)])
-        self.yaw_bias = float(self.rng.normal(0.0, self.noise.yaw_bias_rad))
+        self.yaw_bias = float(self.rng.normal(0.0, self.noise.yaw_bias_rad))  # drawn always: same rng stream
+        if spec.yaw_bias_rad is not None:
+            self.yaw_bias = float(spec.yaw_bias_rad)
         self.times = np.arange(0.0, self.traj.duration_s, 1.0 / CAMERA_HZ)
         self.states = self.traj.states(self.times)
         self.p_true = np.stack([s.p_world for s in self.states])

@@ -45,3 +45,16 @@ def test_true_mount_is_the_configs_composition_and_only_the_calibrated_estimator
             assert np.allclose(e.R_body_cam, R, atol=1e-12)
         finally:
             e.close()
+
+
+def test_compass_bias_is_on_the_initial_yaw_and_every_sample_and_leaves_the_draws_alone() -> None:
+    drawn = Simulation(FlightSpec("01", "circular", 2.0, 0))
+    fixed = Simulation(FlightSpec("01", "circular", 2.0, 0, yaw_bias_rad=0.09))
+    true_yaw0 = rpy_from_rot(fixed.states[0].R_world_body)[2]
+    assert fixed.yaw0 == pytest.approx(true_yaw0 + 0.09, abs=1e-12)
+    a = [att for _, att, _, _ in drawn.samples()]
+    b = [att for _, att, _, _ in fixed.samples()]
+    # the same noise draws: only the yaw moves, by the difference of the biases
+    assert [x.roll_rad for x in a] == [x.roll_rad for x in b]
+    dyaw = np.array([y.yaw_rad - x.yaw_rad for x, y in zip(a, b)])
+    assert np.allclose(dyaw, 0.09 - drawn.yaw_bias, atol=1e-12)
