@@ -114,7 +114,8 @@ class BackendResult:
     observations to drop. cov_newest: (6, 6) Pose3-tangent marginal of the newest key frame (NaN if none).
     geo: dict with the fix outcome ("none", "failed:<reason>", "pending", "accepted", "rejected",
     "aligned" (eq. 21, translation, and yaw when the fixes spread enough), "aligned_yaw" (eq. 21 again with
-    the yaw, once they do), "realigned"), its quality and residuals. counters: running totals. ms_*: compute times.
+    the yaw, once they do), "realigned"), its quality and residuals, and "heading_deg" when the matcher's
+    start-up heading turned the map by that much. counters: running totals. ms_*: compute times.
     """
 
     newest_kf: int
