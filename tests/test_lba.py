@@ -1,7 +1,8 @@
 """Local bundle adjustment with the geo-referencing term (companion.lba): factor Jacobian, recovery of a
 synthetic window, w_G = 0 is pure VO, robust loss and gating against a bad geo-fix, eq. 21 alignment,
 marginal covariances (and the first window's, expected to be indeterminate), the gravity prior against the
-tilt/shift ambiguity, the landmark-on-DEM term and the DEM lookup it uses (``ground_below``)."""
+tilt/shift ambiguity, the landmark-on-DEM term and the DEM lookup it uses (``ground_below``), and the start-up
+heading from the matcher's rotation recovery."""
 
 from __future__ import annotations
 
