@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.geometry import make_T, rot_from_rpy
 from companion.georef.dem import Dem
 from companion.lba.align import align_yaw_translation
 from companion.lba.window import LbaOptions, WindowProblem, solve_window
@@ -137,6 +138,9 @@ class BackendResult:
 
 
 def _transform_snapshot(s: WindowSnapshot, T: np.ndarray) -> WindowSnapshot:
+    """The snapshot moved by T (4, 4); itself when T is the identity."""
+    if np.allclose(T, np.eye(4)):
+        return s
     return replace(
         s,
         T_world_cam=np.einsum("ij,njk->nik", T, s.T_world_cam),
@@ -234,24 +238,15 @@ class Backend:
         if not ks:
             return None
         c = self._vo_points(s, self.fixes, ks).mean(axis=0)
-        cz, sz = np.cos(d), np.sin(d)
-        R = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])  # about down: true yaw = yaw + d
-        T = np.eye(4)
-        T[:3, :3] = R
-        T[:3, 3] = c - R @ c
-        return T, d
+        R = rot_from_rpy(0.0, 0.0, d)  # about down: true yaw = yaw + d
+        return make_T(R, c - R @ c), d
 
     def _geo(self, job: BackendJob) -> tuple[dict, np.ndarray]:
         """Geo-reference the newest key frame; returns (outcome, T_align)."""
         want_heading = self.opt.heading_from_matcher and not self.yaw_aligned
         out, T_align = self._geo_fix(job, want_heading)
         if want_heading and self.aligned and not self.yaw_aligned:
-            s = (
-                job.snapshot
-                if np.allclose(T_align, np.eye(4))
-                else _transform_snapshot(job.snapshot, T_align)
-            )
-            res = self._try_heading(s)
+            res = self._try_heading(_transform_snapshot(job.snapshot, T_align))
             if res is not None:
                 T_align = res[0] @ T_align
                 self.yaw_aligned = True
@@ -373,7 +368,7 @@ class Backend:
         t0 = time.perf_counter()
         geo, T_align = self._geo(job)
         t1 = time.perf_counter()
-        s = job.snapshot if np.allclose(T_align, np.eye(4)) else _transform_snapshot(job.snapshot, T_align)
+        s = _transform_snapshot(job.snapshot, T_align)
         M = len(s.kf_ids)
         anchor = s.anchor.copy()
         if anchor.sum() < self.opt.min_anchors:
