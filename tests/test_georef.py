@@ -164,6 +164,25 @@ def test_rotation_and_scale_recovered(world: World, geo_fine: GeoReferencer) -> 
     assert _error_px(fix, p) < 0.5
 
 
+def test_heading_sweep_finds_a_heading_far_off(world: World) -> None:
+    """25 deg off: out of reach of the polish from "no error" and of the log-polar proposal here; the
+    coarse sweep of headings (``rs_sweep_deg``) finds it."""
+    R, p = world.pose(-15.0, 25.0, yaw_deg=40.0)
+    img = world.render(R, p)
+    R_wrong = rot_from_rpy(0.0, 0.0, np.radians(40.0 - 25.0))
+    p_pred = p + np.array([1.5, -2.0, 0.0])
+    for sweep in (0.0, 30.0):
+        geo = GeoReferencer(world.dem(4), SUN, INTR, options=GeorefOptions(rs_sweep_deg=sweep))
+        fix = geo.locate(img, R_wrong, p_pred, AGL_M / 1.04, solve_rotation_scale=True)
+        if sweep == 0.0:
+            assert not fix.ok or abs(np.degrees(fix.rotation_rad) - 25.0) > 5.0
+        else:
+            assert fix.ok, fix.reason
+            assert np.degrees(fix.rotation_rad) == pytest.approx(25.0, abs=0.5)
+            assert fix.scale == pytest.approx(1.04, rel=0.02)
+            assert _error_px(fix, p) < 1.0
+
+
 def test_deterministic(world: World, geo_fine: GeoReferencer) -> None:
     R, p = world.pose(5.0, 5.0, yaw_deg=-60.0)
     img = world.render(R, p)

@@ -103,6 +103,11 @@ class GeorefOptions:
     fm_n_radius: int = 256  # Fourier-Mellin: log-polar columns
     # rotation/scale polish: pattern-search steps (degrees, scale fraction), coarse to fine
     rs_search_steps: tuple[tuple[float, float], ...] = ((2.0, 0.02), (0.6, 0.006))
+    # and a coarse sweep of headings within +-rs_sweep_deg (steps of rs_sweep_step_deg) as starts besides
+    # "no error" and Fourier-Mellin's proposal (0 = none): the translation peak is only found within ~2 deg
+    # of the true heading, and the log-polar proposal is often wrong
+    rs_sweep_deg: float = 0.0
+    rs_sweep_step_deg: float = 2.0
     # covariance model, sigma_px = sigma_floor + sigma_k * (1/q - 1)^2 per axis (frame pixels), fitted to
     # the error against quality on the benchmark scenes
     sigma_floor_px: float = 0.5
@@ -532,6 +537,11 @@ class GeoReferencer:
         starts = [(0.0, 1.0)]
         if 0.5 < rs.scale < 2.0:
             starts += [(float(wrap_pi(-rs.angle_rad + k * np.pi)), 1.0 / rs.scale) for k in (0, 1)]
+        if self.opt.rs_sweep_deg > 0 and self.opt.rs_sweep_step_deg > 0:
+            n = int(self.opt.rs_sweep_deg / self.opt.rs_sweep_step_deg)
+            starts += [
+                (float(np.radians(k * self.opt.rs_sweep_step_deg)), 1.0) for k in range(-n, n + 1) if k
+            ]
         rotation, scale = max(starts, key=lambda x: peak_at(*x))
         if peak_at(rotation, scale) < 0:
             return REASON_LOW_OVERLAP
