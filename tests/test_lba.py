@@ -15,7 +15,7 @@ from gtsam.symbol_shorthand import X
 from gtsam.utils.numerical_derivative import numericalDerivative11
 
 from companion.constants import R_BODY_CAM_NADIR
-from companion.geometry import CameraIntrinsics, make_T, rot_from_rpy
+from companion.geometry import CameraIntrinsics, make_T, rot_from_rpy, wrap_pi
 from companion.georef.dem import Dem
 from companion.lba.align import align_yaw_translation
 from companion.lba.backend import Backend, BackendJob, BackendOptions, ground_below
@@ -247,11 +247,21 @@ def test_backend_gates_a_bad_fix_and_counts_it():
     assert np.linalg.norm(res.T_world_cam[-1, :3, 3] - T[-1, :3, 3]) < min(gate_m, 0.5)
 
 
-def _fly_with_heading_error(heading: bool, yaw_err_deg: float, rot_noise_deg: float, seed: int = 5):
+def _fly_with_heading_error(
+    heading: bool,
+    yaw_err_deg: float,
+    rot_noise_deg: float,
+    seed: int = 5,
+    plain_off_deg: float = 90.0,
+    plain_off: str = "fails",
+    **options,
+):
     """A start-up over ``_scene``: the map turned by -yaw_err_deg (a compass that far off), good fixes, and a
     matcher whose heading estimate (true yaw - given yaw) has ``rot_noise_deg`` of noise. The key frames span
-    about 20 m RMS, short of ``align_min_spread_m``: only the matcher's heading can align the yaw. Returns
-    the back-end and the map's remaining yaw error (deg) after the corrections it sent."""
+    about 20 m RMS, short of ``align_min_spread_m``: only the matcher's heading can align the yaw. A plain fix
+    (no heading search) asked at a heading more than ``plain_off_deg`` wrong ``plain_off``: "fails", or is
+    "wrong" by metres in a random direction, as the phase correlation does. Returns the back-end and the
+    map's remaining yaw error (deg) after the corrections it sent."""
     T, P, ok, ol, opx, rng = _scene(seed)
     d = np.radians(-yaw_err_deg)
     turn = make_T(rot_from_rpy(0.0, 0.0, d), T[0, :3, 3] - rot_from_rpy(0.0, 0.0, d) @ T[0, :3, 3])
@@ -262,15 +272,18 @@ def _fly_with_heading_error(heading: bool, yaw_err_deg: float, rot_noise_deg: fl
 
     def locate(image, R, p, alt, solve_rotation_scale):
         f = _Fix(fixes[current["k"]])
+        R_true = T[current["k"], :3, :3] @ R_BODY_CAM_NADIR.T
+        off = float(wrap_pi(np.arctan2(R_true[1, 0], R_true[0, 0]) - np.arctan2(R[1, 0], R[0, 0])))
         if solve_rotation_scale:
-            R_true = T[current["k"], :3, :3] @ R_BODY_CAM_NADIR.T
-            yaw_true = np.arctan2(R_true[1, 0], R_true[0, 0])
-            f.rotation_rad = (
-                yaw_true - np.arctan2(R[1, 0], R[0, 0]) + np.radians(rot_noise_deg) * rng.normal()
-            )
+            f.rotation_rad = off + np.radians(rot_noise_deg) * rng.normal()
+        elif abs(off) > np.radians(plain_off_deg):
+            if plain_off == "fails":
+                f.ok, f.reason, f.p_world = False, "low_quality", np.full(3, np.nan)
+            else:
+                f.p_world = f.p_world + rng.normal(0.0, 4.0, 3)
         return f
 
-    be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0), heading_from_matcher=heading), locate)
+    be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0), heading_from_matcher=heading, **options), locate)
     for k in range(2, len(T)):
         current["k"] = k
         snap_all = _snapshot(T_map, P_map, ok, ol, opx)
@@ -285,13 +298,38 @@ def _fly_with_heading_error(heading: bool, yaw_err_deg: float, rot_noise_deg: fl
 def test_matcher_heading_turns_the_start_up_map_before_the_fixes_spread():
     be, left_deg = _fly_with_heading_error(True, 2.5, 0.2)
     assert be.yaw_aligned and len(be.heading_samples) >= be.opt.heading_min_samples
-    assert abs(left_deg) < 0.25
+    assert abs(left_deg) < 0.25 and be.counters["heading_coarse_turns"] == 0
     # without it the yaw waits for the fixes to spread 25 m, which this flight does not reach
     be0, left0_deg = _fly_with_heading_error(False, 2.5, 0.2)
     assert not be0.yaw_aligned and abs(left0_deg) > 2.0
     # estimates that disagree (a matcher finding wrong peaks) do not turn the map
     be1, left1_deg = _fly_with_heading_error(True, 2.5, 8.0)
     assert not be1.yaw_aligned and abs(left1_deg) > 2.0
+
+
+def test_matcher_heading_rescues_a_start_up_whose_compass_is_too_far_off_for_the_plain_match():
+    # every plain fix at the compass heading fails: the search's heading finds the terrain
+    be, left_deg = _fly_with_heading_error(True, 10.0, 0.2, plain_off_deg=5.0, plain_off="fails")
+    assert be.aligned and be.yaw_aligned and abs(left_deg) < 0.25
+    assert be.counters["fix_heading_rescued"] >= 1 and be.counters["fix_accepted"] >= 3
+    # two agreeing estimates far off turned the map at once, the fine turn followed
+    assert be.counters["heading_coarse_turns"] == 1
+    # the plain fixes are wrong by metres: they never agree on an alignment until the map is turned
+    be, left_deg = _fly_with_heading_error(True, 10.0, 0.2, plain_off_deg=5.0, plain_off="wrong")
+    assert be.aligned and be.yaw_aligned and abs(left_deg) < 0.25
+    assert be.counters["fix_heading_rescued"] == 0
+    # no compass at all: the heading is half a turn off, the estimates fall either side of +-180 deg; with
+    # the coarse turn, and with the fine one alone (its median is taken about the estimates' circular mean)
+    for coarse_deg in (5.0, 360.0):
+        be, left_deg = _fly_with_heading_error(
+            True, 180.0, 0.3, plain_off_deg=5.0, plain_off="fails", heading_coarse_deg=coarse_deg
+        )
+        assert be.aligned and be.yaw_aligned and abs(left_deg) < 0.25
+        assert be.counters["heading_coarse_turns"] == (1 if coarse_deg < 180 else 0)
+    # without the matcher's heading neither aligns
+    for mode in ("fails", "wrong"):
+        be0, left0_deg = _fly_with_heading_error(False, 10.0, 0.2, plain_off_deg=5.0, plain_off=mode)
+        assert not be0.aligned and abs(left0_deg) > 9.0
 
 
 def test_alignment_recovers_yaw_and_translation_despite_an_outlier():

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.geometry import make_T, rot_from_rpy
+from companion.geometry import make_T, rot_from_rpy, wrap_pi
 from companion.georef.dem import Dem
 from companion.lba.align import align_yaw_translation
 from companion.lba.window import LbaOptions, WindowProblem, solve_window
@@ -70,6 +70,8 @@ class BackendOptions:
     # below, on the dunes, gravel and canyon scenes (peaks 0.19-0.25), the recovered rotation is off by
     # 0.6-0.9 deg median with wild outliers, no better than a compass; from 0.3 up, 0.1-0.35 deg
     heading_max_se_deg: float = 0.5  # standard error of the median (1.25 x robust sigma / sqrt(n)) to act
+    heading_coarse_deg: float = 5.0  # before the first alignment, two consecutive estimates beyond this
+    heading_coarse_agree_deg: float = 2.0  # that agree to this turn the map at once (a compass far off)
     realign_after_rejections: int = 6  # this many gated fixes in a row that agree with each other:
     # the VO frame is off, not the fixes -> eq. 21 again on them
     drift_sigma_per_m: float = 0.02  # VO position sigma growth per metre since the last adjusted key frame
@@ -116,7 +118,8 @@ class BackendResult:
     geo: dict with the fix outcome ("none", "failed:<reason>", "pending", "accepted", "rejected",
     "aligned" (eq. 21, translation, and yaw when the fixes spread enough), "aligned_yaw" (eq. 21 again with
     the yaw, once they do), "realigned"), its quality and residuals, and "heading_deg" when the matcher's
-    start-up heading turned the map by that much. counters: running totals. ms_*: compute times.
+    start-up heading turned the map by that much ("heading_coarse_deg": its coarse turn, a compass far off).
+    counters: running totals. ms_*: compute times.
     """
 
     newest_kf: int
@@ -163,6 +166,8 @@ class Backend:
             "fix_failed": 0,
             "fix_accepted": 0,
             "fix_rejected": 0,
+            "fix_heading_rescued": 0,  # failed at the compass heading, found at the matcher's (start-up)
+            "heading_coarse_turns": 0,  # start-up turns by two agreeing heading estimates far off
             "alignments": 0,
             "realignments": 0,
             "lba_failed": 0,
@@ -224,20 +229,25 @@ class Backend:
                 self.cov[kk] = released
 
     def _try_heading(self, s: WindowSnapshot) -> tuple[np.ndarray, float] | None:
-        """(T_world_vo turning the map about its fixes' centre by the matcher's median heading error, that
-        angle), or None while the estimates are too few or too scattered."""
+        """(T_world_vo turning the map by the matcher's median heading error, that angle), or None while the
+        estimates are too few or too scattered. The turn is about the fixes' centre once the map is aligned
+        (it keeps them in place), else about the newest key frame (the first alignment will place it)."""
         r = np.asarray(self.heading_samples, float)
         if len(r) < max(self.opt.heading_min_samples, 1):
             return None
-        d = float(np.median(r))
-        se = 1.2533 * 1.4826 * float(np.median(np.abs(r - d))) / np.sqrt(len(r))
+        # the median about the samples' circular mean: a heading error near 180 deg (no compass) wraps
+        mean = float(np.angle(np.exp(1j * r).sum()))
+        r = np.asarray(wrap_pi(r - mean), float)
+        m = float(np.median(r))
+        d = float(wrap_pi(m + mean))
+        se = 1.2533 * 1.4826 * float(np.median(np.abs(r - m))) / np.sqrt(len(r))
         if se > np.radians(self.opt.heading_max_se_deg):
             return None
         in_snap = set(int(k) for k in s.kf_ids)
         ks = [k for k in sorted(self.fixes) if k in in_snap]
-        if not ks:
+        if self.aligned and not ks:
             return None
-        c = self._vo_points(s, self.fixes, ks).mean(axis=0)
+        c = self._vo_points(s, self.fixes, ks).mean(axis=0) if self.aligned else s.T_world_cam[-1, :3, 3]
         R = rot_from_rpy(0.0, 0.0, d)  # about down: true yaw = yaw + d
         return make_T(R, c - R @ c), d
 
@@ -245,12 +255,37 @@ class Backend:
         """Geo-reference the newest key frame; returns (outcome, T_align)."""
         want_heading = self.opt.heading_from_matcher and not self.yaw_aligned
         out, T_align = self._geo_fix(job, want_heading)
-        if want_heading and self.aligned and not self.yaw_aligned:
+        r = self.heading_samples
+        gap = float(wrap_pi(r[-1] - r[-2])) if len(r) >= 2 else np.inf
+        d = float(wrap_pi(r[-2] + 0.5 * gap)) if len(r) >= 2 else 0.0  # their mean, across +-180 too
+        if (
+            want_heading
+            and not self.aligned
+            and abs(gap) < np.radians(self.opt.heading_coarse_agree_deg)
+            and abs(d) > np.radians(self.opt.heading_coarse_deg)
+        ):
+            # far off (no compass): every second flown on the wrong heading takes the VO further from the
+            # terrain the matcher searches, so two agreeing estimates turn the map at once; the fine turn
+            # below follows from estimates measured at the new heading
+            c = _transform_snapshot(job.snapshot, T_align).T_world_cam[-1, :3, 3]
+            R = rot_from_rpy(0.0, 0.0, d)
+            T_align = make_T(R, c - R @ c) @ T_align
+            self.heading_samples.clear()
+            self.pending.clear()
+            self.counters["heading_coarse_turns"] += 1
+            out["heading_coarse_deg"] = float(np.degrees(d))
+        if want_heading and not self.yaw_aligned:
             res = self._try_heading(_transform_snapshot(job.snapshot, T_align))
             if res is not None:
                 T_align = res[0] @ T_align
                 self.yaw_aligned = True
-                self._release_startup_rotations()
+                if self.aligned:
+                    self._release_startup_rotations()
+                else:
+                    # a compass far off (measured: 10 deg on scene 01) biases the plain fixes so that they
+                    # never agree on an alignment; those taken at the old heading are dropped, the next
+                    # ones are matched at the turned one
+                    self.pending.clear()
                 self.counters["alignments"] += 1
                 out["heading_deg"] = float(np.degrees(res[1]))
         return out, T_align
@@ -263,12 +298,20 @@ class Backend:
             return {"status": "none"}, T_align
         self.counters["fix_attempts"] += 1
         fix = self.locate(job.image, job.R_world_body, job.p_body_in_world, job.alt_agl_m, False)
-        if want_heading and fix.ok:
-            # a second search for the heading (and height) error only: the fix itself stays the plain one,
-            # at the altimeter's height
+        if want_heading:
+            # a second search for the heading (and height) error: the fix itself stays the plain one, at the
+            # altimeter's height
             rs = self.locate(job.image, job.R_world_body, job.p_body_in_world, job.alt_agl_m, True)
             if rs.ok and rs.rotation_scale_quality >= self.opt.heading_min_quality:
                 self.heading_samples.append(float(rs.rotation_rad))
+                if not fix.ok:
+                    # the compass is so far off that the plain match failed, but the search found the
+                    # terrain: the plain fix again at the heading it found (measured: a 10 deg compass error
+                    # fails every plain fix on scene 01)
+                    R_found = rot_from_rpy(0.0, 0.0, float(rs.rotation_rad)) @ job.R_world_body
+                    fix = self.locate(job.image, R_found, job.p_body_in_world, job.alt_agl_m, False)
+                    if fix.ok:
+                        self.counters["fix_heading_rescued"] += 1
         if not fix.ok or fix.quality < self.opt.geo_min_quality:
             reason = fix.reason or "low_quality"
             self.fail_reasons[reason] = self.fail_reasons.get(reason, 0) + 1
@@ -305,7 +348,8 @@ class Backend:
                     del self.pending[old]
                 out["status"] = "pending"
                 return out, T_align
-            T_align, inliers, self.yaw_aligned = res
+            T_align, inliers, yaw_estimated = res
+            self.yaw_aligned = self.yaw_aligned or yaw_estimated  # (or by the matcher's heading before)
             self.fixes.update({kk: self.pending[kk] for kk in inliers})
             self.counters["fix_accepted"] += len(inliers)
             self.pending.clear()
@@ -402,7 +446,7 @@ class Backend:
             down_cam=s.down_cam,
             # the map must be in the world (position and yaw) before its points can be put on the DEM
             lm_ground=ground_below(self.terrain, s.p_world)
-            if self.terrain is not None and self.yaw_aligned
+            if self.terrain is not None and self.aligned and self.yaw_aligned
             else None,
         )
         sol = solve_window(problem, self.opt.lba)
