@@ -133,6 +133,9 @@ class TerrainLbaConfig(_Strict):
     # at start-up, turn the map by the heading error the matcher recovers from the terrain (README); false:
     # keep the compass heading until the fixes have spread 25 m
     heading_from_matcher: bool = True
+    # how far off the compass may be (deg): the matcher's start-up heading search tries headings this far
+    # either side of it (180: no compass); each 2 deg more costs a match per start-up key frame (1.5-3 ms)
+    heading_search_deg: Annotated[float, Field(ge=0, le=180)] = 30.0
     # landmarks held on the DEM in the adjustment: the DEM's vertical / horizontal error (m); 0 = off
     terrain_sigma_m: Annotated[float, Field(ge=0)] = 0.5
     terrain_sigma_horizontal_m: Annotated[float, Field(ge=0)] = 0.5

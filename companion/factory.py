@@ -67,7 +67,7 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
         )
         lba_opt = replace(
             lba_opt,
-            georef=replace(lba_opt.georef, joint_shift=t.joint_shift),
+            georef=replace(lba_opt.georef, joint_shift=t.joint_shift, rs_sweep_deg=t.heading_search_deg),
             backend=replace(lba_opt.backend, heading_from_matcher=t.heading_from_matcher),
         )
         return TerrainLbaEstimator(

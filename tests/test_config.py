@@ -124,6 +124,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         "max_tracked_ratio_kf": 0.8,
         "joint_shift": False,
         "heading_from_matcher": False,
+        "heading_search_deg": 12.0,
         "terrain_sigma_m": 0.7,
         "terrain_sigma_horizontal_m": 0.3,
         "attitude_sigma_rad": 0.004,
@@ -147,6 +148,8 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
                 assert opt.georef.joint_shift is value
             elif key == "heading_from_matcher":
                 assert opt.backend.heading_from_matcher is value
+            elif key == "heading_search_deg":
+                assert opt.georef.rs_sweep_deg == value
             else:
                 assert getattr(opt, key) == value, key
         assert (lba.w_geo, lba.terrain_sigma_m, lba.terrain_sigma_horizontal_m) == (5.0, 0.7, 0.3)
