@@ -16,9 +16,12 @@ away from where it is (0.35 m per 0.2 degree at 100 m). This benchmark measures 
 - ``mount error``: the camera pitched forward by ``--degrees`` on the vehicle, the estimator told nadir;
 - ``mount error, calibrated``: the same frames, the estimator given the true mount (what
   ``cameras.nadir.extra_rpy_deg`` in the configuration is for);
-- ``compass bias``: the compass (initial yaw and every ATTITUDE yaw) off by ``--compass-degrees`` for the
-  whole flight, over ``--compass-scene`` (default 01: the start-up heading search needs the matcher's peak at
-  0.3 or more, which 08 is at the edge of), with the heading search (``heading_from_matcher``) and without.
+- ``compass bias``: the compass (initial yaw and every ATTITUDE yaw) off by each of ``--compass-degrees``
+  (default 5 and 20) for the whole flight, over ``--compass-scene`` (default 01: the start-up heading search
+  needs the matcher's peak at 0.3 or more, which 08 is at the edge of), with the heading search
+  (``heading_from_matcher``, trying headings within ``heading_search_deg`` = 30 of the compass's) and without;
+- ``no compass``: the same with the heading ``--no-compass-degrees`` (120) off, as on Mars with no heading
+  reference worth the name, the search over the whole turn (``heading_search_deg`` = 180).
 
 Per case the APE (evo, no alignment) mean / rmse / max, its horizontal and vertical parts, and the mean
 horizontal error in the vehicle's heading frame (forward, right; ``mean_error_forward_right_m``): a roll bias
@@ -43,8 +46,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", default="08", help="scene id (default 08, the Tables 4 and 5 scene)")
     p.add_argument("--degrees", type=float, default=0.2, help="size of the tilt bias and the mount error")
     p.add_argument("--duration-s", type=float, default=None, help="flight duration (default 190, quick 30)")
-    p.add_argument("--compass-degrees", type=float, default=5.0, help="compass bias of the compass case")
+    p.add_argument(
+        "--compass-degrees",
+        type=float,
+        nargs="+",
+        default=[5.0, 20.0],
+        help="compass biases of the compass cases",
+    )
     p.add_argument("--compass-scene", default="01", help="scene of the compass case")
+    p.add_argument(
+        "--no-compass-degrees",
+        type=float,
+        default=120.0,
+        help="heading error of the no-compass case, searched over +-180 deg (0: no such case)",
+    )
     a = p.parse_args(argv)
     dur = a.duration_s or (30.0 if a.quick else 190.0)
     ang = float(np.radians(a.degrees))
@@ -66,26 +81,36 @@ def main(argv: list[str] | None = None) -> int:
             },
             ("calibrated",),
         ),
+    ]
+    compass = [(f"compass_bias_{d:g}", d, f"compass {d:g} deg off") for d in a.compass_degrees]
+    if a.no_compass_degrees:
+        d = a.no_compass_degrees
+        compass.append((f"no_compass_{d:g}", d, f"no compass: heading {d:g} deg off, search +-180"))
+    cases += [
         (
-            "compass_bias",
-            FlightSpec(
-                a.compass_scene, "circular", dur, a.seed, yaw_bias_rad=float(np.radians(a.compass_degrees))
-            ),
+            case,
+            FlightSpec(a.compass_scene, "circular", dur, a.seed, yaw_bias_rad=float(np.radians(deg))),
             {
-                "heading_search": f"compass {a.compass_degrees:g} deg off (scene {a.compass_scene})",
-                "compass_only": f"compass {a.compass_degrees:g} deg off, no heading search",
+                "heading_search": f"{what} (scene {a.compass_scene})",
+                "compass_only": f"{what}, no heading search",
             },
             (),
-        ),
+        )
+        for case, deg, what in compass
     ]
     no_heading = replace(lba, backend=replace(lba.backend, heading_from_matcher=False))
+    # without a compass the search covers the whole turn (``estimator.terrain_lba.heading_search_deg``)
+    lba_360 = replace(lba, georef=replace(lba.georef, rs_sweep_deg=180.0))
     results: dict[str, Any] = {"quick": a.quick, "seed": a.seed, "scene": a.scene, "degrees": a.degrees}
     rows = []
     for case, spec, names, known in cases:
         print(f"  {case}: scene {spec.scene_id} circular {dur:.0f}s", flush=True)
         r = run_flight(
             spec,
-            {n: no_heading if n == "compass_only" else lba for n in names},
+            {
+                n: no_heading if n == "compass_only" else lba_360 if case.startswith("no_compass") else lba
+                for n in names
+            },
             log=False,
             mount_known=known,
         )
