@@ -231,3 +231,13 @@ def test_back_end_worker_that_cannot_start_fails_at_once_with_its_exit_code() ->
     with pytest.raises(RuntimeError, match="exit code 1"):
         TerrainLbaEstimator(opt, INTR, R_BODY_CAM_NADIR, dem, Sun.from_degrees(10, 0, 60), np.zeros(3))
     assert time.monotonic() - t0 < 60.0
+
+
+def test_alignment_and_start_up_heading_are_logged_for_the_pilot(caplog) -> None:
+    caplog.set_level("INFO", logger="companion.estimators.terrain_lba")
+    TerrainLbaEstimator._log_alignment({"status": "accepted"})
+    assert not caplog.records  # an ordinary fix says nothing
+    TerrainLbaEstimator._log_alignment({"status": "aligned", "heading_coarse_deg": 19.6, "heading_deg": 0.42})
+    text = caplog.text
+    assert "+19.6 deg off the compass (coarse)" in text and "+0.42 deg off the compass" in text
+    assert "map aligned to the geo-fixes" in text

@@ -528,6 +528,7 @@ class TerrainLbaEstimator:
             res.outlier_lm,
         )
         self.last_result = res
+        self._log_alignment(res.geo)
         kf = self.vo.kfs.get(res.newest_kf)
         if "p_fix_world" in res.geo and kf is not None:
             self.geo_fixes.append(GeoFixRecord.of(kf.stamp_us, res.geo))
@@ -634,6 +635,21 @@ class TerrainLbaEstimator:
         if not np.isfinite(h) or cos_tilt < 0.3 or -p_body[2] - h <= 0:
             return None
         return (-p_body[2] - h) / cos_tilt
+
+    @staticmethod
+    def _log_alignment(geo: dict) -> None:
+        """One line when the map is put in the world: what a pilot watching the log wants to know (the
+        compass was this far off; the fixes moved it)."""
+        if "heading_coarse_deg" in geo:
+            log.info(
+                "terrain_lba: heading from the terrain %+.1f deg off the compass (coarse)",
+                geo["heading_coarse_deg"],
+            )
+        if "heading_deg" in geo:
+            log.info("terrain_lba: heading from the terrain %+.2f deg off the compass", geo["heading_deg"])
+        status = geo.get("status")
+        if status in ("aligned", "aligned_yaw", "realigned"):
+            log.info("terrain_lba: map %s to the geo-fixes", status.replace("_yaw", " (with the yaw)"))
 
     def _not_ok(self, t: int, status: EstimateStatus, st: Any) -> PoseEstimate:
         p = self.initial_p_world if self._last_p_body is None else self._last_p_body
