@@ -100,6 +100,7 @@ class SimNoise:
     roll_pitch_rad: float = 0.003
     yaw_rad: float = 0.005
     yaw_bias_rad: float = 0.02
+    yaw_offset_rad: float = 0.0  # a compass this far off on top of the drawn bias (``--compass-offset``)
     position_m: float = 0.05
     velocity_mps: float = 0.03
     accel_mps2: float = 0.05
@@ -238,7 +239,7 @@ class SimAutopilotLink:
 
     def _draw_biases(self) -> None:
         n = self.options.noise
-        self._yaw_bias = float(self.rng.normal(0.0, n.yaw_bias_rad))
+        self._yaw_bias = float(self.rng.normal(0.0, n.yaw_bias_rad)) + n.yaw_offset_rad
         self._accel_bias = self.rng.normal(0.0, n.accel_bias_mps2, 3)
         self._gyro_bias = self.rng.normal(0.0, n.gyro_bias_rps, 3)
 

@@ -62,6 +62,13 @@ def _add_sim_args(p: argparse.ArgumentParser, worlds: bool = False) -> None:
         p.add_argument("--camera-rate", type=float, default=d.camera_rate_hz, help="Hz (default %(default)s)")
     p.add_argument("--start-delay", type=float, default=None, help="s before take-off (sim: 0, demo: 2)")
     p.add_argument(
+        "--compass-offset",
+        type=float,
+        default=0.0,
+        help="the simulated compass this many degrees off for the whole flight (demo: the companion's "
+        "initial heading too)",
+    )
+    p.add_argument(
         "--wait-companion",
         type=float,
         default=0.0,
@@ -90,6 +97,7 @@ def sim_config_from_args(a: argparse.Namespace, **kw) -> SimConfig:
         camera_rate_hz=wd["camera_rate_hz"] if a.camera_rate is None else a.camera_rate,
         world=world,
         origin_lat_lon_alt=wd["origin_lat_lon_alt"],
+        compass_offset_deg=a.compass_offset,
         **kw,
     )
 

@@ -17,10 +17,11 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,7 @@ import numpy as np
 from companion.constants import GRAVITY_MPS2
 from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
 from companion.io.frames import encode_image
-from sim_bridge.autopilot_link import SimAutopilotLink, SimAutopilotOptions
+from sim_bridge.autopilot_link import SimAutopilotLink, SimAutopilotOptions, SimNoise
 from sim_bridge.trajectory import Trajectory, circular, forward, scanning
 
 log = logging.getLogger("sim_bridge")
@@ -61,6 +62,7 @@ class SimConfig:
     start_delay_s: float = 0.0  # autopilot up, camera silent: time for a companion to connect and sync
     wait_companion_s: float = 0.0  # before that, wait (at most this long) for a companion's HEARTBEAT
     autopilot_params: tuple[tuple[str, float], ...] = ()  # simulated autopilot parameters set by name
+    compass_offset_deg: float = 0.0  # the simulated compass (ATTITUDE yaw) this far off, whole flight
 
 
 WORLDS = ("mars", "europa")
@@ -157,7 +159,7 @@ class SimVehicle:
                 planet="europa",
                 origin=cfg.origin_lat_lon_alt,
                 range_max_m=250.0,
-                noise=europa_telemetry_noise(),
+                noise=replace(europa_telemetry_noise(), yaw_offset_rad=math.radians(cfg.compass_offset_deg)),
                 params=cfg.autopilot_params,
             )
         elif cfg.world == "mars":
@@ -174,6 +176,7 @@ class SimVehicle:
                 planet="mars",
                 origin=cfg.origin_lat_lon_alt,
                 range_max_m=max(150.0, 2 * cfg.height_agl_m),
+                noise=SimNoise(yaw_offset_rad=math.radians(cfg.compass_offset_deg)),
                 params=cfg.autopilot_params,
             )
         else:

@@ -23,6 +23,7 @@ from sim_bridge.autopilot_link import (
     REJECT_TOO_OLD,
     SimAutopilotLink,
     SimAutopilotOptions,
+    SimNoise,
     hover_truth,
 )
 
@@ -212,6 +213,33 @@ def test_serial_pty() -> None:
     names = {m.get_type() for m in got}
     assert {"HEARTBEAT", "ATTITUDE", "HIGHRES_IMU"} <= names
     assert len(sim.accepted()) == 1 and sim.accepted()[0].usec == boot
+
+
+def test_compass_offset_moves_every_attitude_yaw_and_leaves_the_draws_alone() -> None:
+    """``--compass-offset``: the simulated compass off by a fixed angle on top of its drawn bias."""
+    off = SimAutopilotOptions(noise=SimNoise(yaw_offset_rad=0.3))
+    a = SimAutopilotLink(f"udpin:127.0.0.1:{free_port()}", rng=np.random.default_rng(11))
+    b = SimAutopilotLink(f"udpin:127.0.0.1:{free_port()}", rng=np.random.default_rng(11), options=off)
+    try:
+        assert b._yaw_bias - a._yaw_bias == pytest.approx(0.3, abs=1e-12)
+        np.testing.assert_array_equal(a._accel_bias, b._accel_bias)
+    finally:
+        a.transport.close()
+        b.transport.close()
+    port = free_port()
+    sim = SimAutopilotLink(f"udpin:127.0.0.1:{port}", truth=hover_truth(10.0), options=off)
+    sim.start()
+    gcs = Gcs(port)
+    try:
+        gcs.hello()
+        assert wait_for(lambda: len(gcs.of("ATTITUDE")) > 20)
+    finally:
+        gcs.close()
+        sim.stop()
+    yaw = np.array([m.yaw for m in gcs.of("ATTITUDE")])
+    truth_yaw = hover_truth(10.0)(0)["rpy_rad"][2]
+    # the drawn bias is 0.02 rad 1-sigma and the noise 0.005 rad: the offset dominates
+    assert np.mean(yaw) - truth_yaw == pytest.approx(0.3, abs=0.1)
 
 
 def test_scaled_imu_units_and_seeded_biases() -> None:
