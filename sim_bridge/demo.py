@@ -114,6 +114,18 @@ def estimator_line(status: dict[str, Any] | None) -> str:
     return ", ".join(f"{k} {v}" for k, v in c.items())
 
 
+def alignment_notes(log_path: Path, limit: int = 6) -> list[str]:
+    """The companion's log lines that say how its map was put in the world (terrain_lba's start-up heading
+    and alignments), without the time and level."""
+    key = "companion.estimators.terrain_lba: "
+    try:
+        lines = log_path.read_text(errors="replace").splitlines()
+    except OSError:
+        return []
+    notes = [ln[ln.index(key) + len(key) :] for ln in lines if key in ln]
+    return [n for n in notes if n.startswith(("heading from the terrain", "map "))][:limit]
+
+
 def run_demo(a: argparse.Namespace) -> int:
     from sim_bridge.cli import sim_config_from_args
     from sim_bridge.terrain import degrade_dem, make_scene
@@ -155,6 +167,8 @@ def run_demo(a: argparse.Namespace) -> int:
         "60",
         "--start-delay",
         str(2.0 if a.start_delay is None else a.start_delay),
+        "--compass-offset",
+        str(a.compass_offset),
         "--zenoh-listen",
         f"tcp/127.0.0.1:{zport}",
         "--mavlink",
@@ -169,9 +183,12 @@ def run_demo(a: argparse.Namespace) -> int:
         "dem.path": str(run_dir / "dem.npz"),
         "estimator.kind": a.estimator,
         "estimator.initial_position_ned_m": p0,
-        "estimator.initial_yaw_deg": round(yaw0, 3),
+        "estimator.initial_yaw_deg": round(yaw0 + a.compass_offset, 3),
         "cameras.nadir.key": cfg.camera_key,
     }
+    if abs(a.compass_offset) > 30.0:  # beyond the default search: the vehicle's owner would set it
+        overrides["estimator.terrain_lba.heading_search_deg"] = 180.0
+        print("compass more than 30 deg off: the companion searches all headings (heading_search_deg 180)")
     comp_cmd = [sys.executable, "-m", "companion", "run", "--config", a.config]
     for k, v in overrides.items():
         comp_cmd += ["--set", f"{k}={json.dumps(v)}"]
@@ -251,6 +268,8 @@ def run_demo(a: argparse.Namespace) -> int:
     line = estimator_line(status)
     if line:
         print(f"companion estimator {a.estimator}: {line}")
+    for note in alignment_notes(run_dir / "companion.log"):
+        print(f"  {note}")
     if accepted == 0:
         print("no estimate reached the autopilot: see companion.log")
         return 1

@@ -215,8 +215,9 @@ FLIGHTS = [
 
 @pytest.mark.parametrize("case", FLIGHTS, ids=[c.estimator for c in FLIGHTS])
 def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
-    tmp_path: Path, dem_path, case: FlightCase
+    tmp_path: Path, dem_path, case: FlightCase, caplog
 ) -> None:
+    caplog.set_level("INFO", logger="companion.estimators.terrain_lba")
     dem, ground = dem_path
     zsim, zbad, zcomp = (free_port(socket.SOCK_STREAM) for _ in range(3))
     mport = free_port(socket.SOCK_DGRAM)
@@ -297,6 +298,8 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
         c = st["estimator"]["counters"]
         assert c["keyframes"] >= 5 and c["lba_runs"] >= 4 and c["backend_applied"] >= 4, c
         assert c["fix_accepted"] >= 3 and c["alignments"] >= 1, c
+        # and the log says when the map was put in the world (what the demo prints after a flight)
+        assert "map aligned to the geo-fixes" in caplog.text
         assert c["fix_accepted"] + c["fix_rejected"] + c["fix_failed"] <= c["fix_attempts"], c
         assert c["backend_errors"] == 0 and c["lost"] == 0 and c["lba_failed"] == 0, c
         assert isinstance(st["estimator"]["no_fix_reasons"], dict)

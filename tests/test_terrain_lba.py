@@ -239,5 +239,5 @@ def test_alignment_and_start_up_heading_are_logged_for_the_pilot(caplog) -> None
     assert not caplog.records  # an ordinary fix says nothing
     TerrainLbaEstimator._log_alignment({"status": "aligned", "heading_coarse_deg": 19.6, "heading_deg": 0.42})
     text = caplog.text
-    assert "+19.6 deg off the compass (coarse)" in text and "+0.42 deg off the compass" in text
+    assert "map turned by +19.6 deg (coarse)" in text and "map turned by +0.42 deg" in text
     assert "map aligned to the geo-fixes" in text

@@ -639,17 +639,14 @@ class TerrainLbaEstimator:
     @staticmethod
     def _log_alignment(geo: dict) -> None:
         """One line when the map is put in the world: what a pilot watching the log wants to know (the
-        compass was this far off; the fixes moved it)."""
+        terrain turned the compass heading by this much; the fixes placed the map)."""
         if "heading_coarse_deg" in geo:
-            log.info(
-                "terrain_lba: heading from the terrain %+.1f deg off the compass (coarse)",
-                geo["heading_coarse_deg"],
-            )
+            log.info("heading from the terrain: map turned by %+.1f deg (coarse)", geo["heading_coarse_deg"])
         if "heading_deg" in geo:
-            log.info("terrain_lba: heading from the terrain %+.2f deg off the compass", geo["heading_deg"])
+            log.info("heading from the terrain: map turned by %+.2f deg", geo["heading_deg"])
         status = geo.get("status")
         if status in ("aligned", "aligned_yaw", "realigned"):
-            log.info("terrain_lba: map %s to the geo-fixes", status.replace("_yaw", " (with the yaw)"))
+            log.info("map %s to the geo-fixes", status.replace("_yaw", " (with the yaw)"))
 
     def _not_ok(self, t: int, status: EstimateStatus, st: Any) -> PoseEstimate:
         p = self.initial_p_world if self._last_p_body is None else self._last_p_body
