@@ -62,8 +62,9 @@ class BackendOptions:
     # start-up heading from the matcher: until the yaw is aligned, each key frame's fix also recovers the
     # heading error of the map (``GeoReferencer.locate(solve_rotation_scale=True)``, Fourier-Mellin then a
     # peak search); once the median of these estimates is known to ``heading_max_se_deg`` the map is turned
-    # by it about its fixes' centre. Mars has no compass worth the name: the terrain gives the heading long
-    # before the fixes spread ``align_min_spread_m``.
+    # by it (``_try_heading``), and before the first alignment two agreeing estimates far off turn it at once
+    # (``heading_coarse_*``). Mars has no compass worth the name: the terrain gives the heading long before
+    # the fixes spread ``align_min_spread_m``.
     heading_from_matcher: bool = True
     heading_min_samples: int = 5  # estimates needed (their median is robust to a wrong peak or two)
     heading_min_quality: float = 0.3  # an estimate counts when the translation peak at it is this high:
@@ -138,6 +139,12 @@ class BackendResult:
     lba_iterations: int
     ms_geo: float
     ms_lba: float
+
+
+def _turn_about(c: np.ndarray, angle_rad: float) -> np.ndarray:
+    """(4, 4) turn by angle_rad about the down axis through the point c (true yaw = yaw + angle)."""
+    R = rot_from_rpy(0.0, 0.0, angle_rad)
+    return make_T(R, c - R @ c)
 
 
 def _transform_snapshot(s: WindowSnapshot, T: np.ndarray) -> WindowSnapshot:
@@ -248,28 +255,33 @@ class Backend:
         if self.aligned and not ks:
             return None
         c = self._vo_points(s, self.fixes, ks).mean(axis=0) if self.aligned else s.T_world_cam[-1, :3, 3]
-        R = rot_from_rpy(0.0, 0.0, d)  # about down: true yaw = yaw + d
-        return make_T(R, c - R @ c), d
+        return _turn_about(c, d), d
+
+    def _coarse_heading(self) -> float | None:
+        """The mean of the last two heading estimates (across +-180 deg too) when they agree to
+        ``heading_coarse_agree_deg`` and are beyond ``heading_coarse_deg``, else None."""
+        r = self.heading_samples
+        if len(r) < 2:
+            return None
+        gap = float(wrap_pi(r[-1] - r[-2]))
+        d = float(wrap_pi(r[-2] + 0.5 * gap))
+        if abs(gap) < np.radians(self.opt.heading_coarse_agree_deg) and abs(d) > np.radians(
+            self.opt.heading_coarse_deg
+        ):
+            return d
+        return None
 
     def _geo(self, job: BackendJob) -> tuple[dict, np.ndarray]:
         """Geo-reference the newest key frame; returns (outcome, T_align)."""
         want_heading = self.opt.heading_from_matcher and not self.yaw_aligned
         out, T_align = self._geo_fix(job, want_heading)
-        r = self.heading_samples
-        gap = float(wrap_pi(r[-1] - r[-2])) if len(r) >= 2 else np.inf
-        d = float(wrap_pi(r[-2] + 0.5 * gap)) if len(r) >= 2 else 0.0  # their mean, across +-180 too
-        if (
-            want_heading
-            and not self.aligned
-            and abs(gap) < np.radians(self.opt.heading_coarse_agree_deg)
-            and abs(d) > np.radians(self.opt.heading_coarse_deg)
-        ):
+        d = self._coarse_heading() if want_heading and not self.aligned else None
+        if d is not None:
             # far off (no compass): every second flown on the wrong heading takes the VO further from the
             # terrain the matcher searches, so two agreeing estimates turn the map at once; the fine turn
             # below follows from estimates measured at the new heading
             c = _transform_snapshot(job.snapshot, T_align).T_world_cam[-1, :3, 3]
-            R = rot_from_rpy(0.0, 0.0, d)
-            T_align = make_T(R, c - R @ c) @ T_align
+            T_align = _turn_about(c, d) @ T_align
             self.heading_samples.clear()
             self.pending.clear()
             self.counters["heading_coarse_turns"] += 1
@@ -306,8 +318,7 @@ class Backend:
                 self.heading_samples.append(float(rs.rotation_rad))
                 if not fix.ok:
                     # the compass is so far off that the plain match failed, but the search found the
-                    # terrain: the plain fix again at the heading it found (measured: a 10 deg compass error
-                    # fails every plain fix on scene 01)
+                    # terrain: the plain fix again at the heading it found
                     R_found = rot_from_rpy(0.0, 0.0, float(rs.rotation_rad)) @ job.R_world_body
                     fix = self.locate(job.image, R_found, job.p_body_in_world, job.alt_agl_m, False)
                     if fix.ok:
