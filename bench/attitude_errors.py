@@ -26,7 +26,9 @@ away from where it is (0.35 m per 0.2 degree at 100 m). This benchmark measures 
 Per case the APE (evo, no alignment) mean / rmse / max, its horizontal and vertical parts, and the mean
 horizontal error in the vehicle's heading frame (forward, right; ``mean_error_forward_right_m``): a roll bias
 leaves the body off to one side all the way round the circle, which the mean north / east error would average
-out.
+out. And whether the covariance sent with the estimates owns up to the error: its mean horizontal 1-sigma and
+the share of estimates whose error lies inside their own 95 % ellipse (``covariance_consistency``; 95 % when
+right, far less when over-confident: a compass off by more than its ``compass_sigma_deg`` (2) says so).
 """
 
 from __future__ import annotations
@@ -100,7 +102,8 @@ def main(argv: list[str] | None = None) -> int:
     ]
     no_heading = replace(lba, backend=replace(lba.backend, heading_from_matcher=False))
     # without a compass the search covers the whole turn (``estimator.terrain_lba.heading_search_deg``)
-    lba_360 = replace(lba, georef=replace(lba.georef, rs_sweep_deg=180.0))
+    # and trusts no heading until the terrain gives one (``compass_sigma_deg`` 180)
+    lba_360 = replace(lba, georef=replace(lba.georef, rs_sweep_deg=180.0), compass_sigma_rad=float(np.pi))
     results: dict[str, Any] = {"quick": a.quick, "seed": a.seed, "scene": a.scene, "degrees": a.degrees}
     rows = []
     for case, spec, names, known in cases:
@@ -127,11 +130,26 @@ def main(argv: list[str] | None = None) -> int:
                     for k in ("mean", "rmse", "max", "horizontal_mean", "vertical_mean")
                 ]
                 + [*res.get("mean_error_forward_right_m", [float("nan")] * 2)]
+                + [
+                    res.get("covariance_consistency", {}).get(k, float("nan"))
+                    for k in ("sigma_mean_m", "within_95")
+                ]
             )
         write_json(a.json, results)
     print(
         table(
-            ["case", "mean/m", "rmse/m", "max/m", "horiz/m", "vert/m", "fwd/m", "right/m"],
+            [
+                "case",
+                "mean/m",
+                "rmse/m",
+                "max/m",
+                "horiz/m",
+                "vert/m",
+                "fwd/m",
+                "right/m",
+                "sigma/m",
+                "in 95 %",
+            ],
             rows,
             f"terrain_lba, scene {a.scene} circular {dur:.0f}s, attitude errors the estimator does not know",
         )

@@ -39,6 +39,7 @@ from companion.geometry import CameraIntrinsics, camera_pose, rot_from_rpy, rpy_
 from companion.types import AltimeterSample, AttitudeSample, Frame
 from sim_bridge.autopilot_link import SimNoise
 from sim_bridge.render import VisibleRenderer
+from sim_bridge.sim import covariance_consistency
 from sim_bridge.terrain import SCENE_IDS, degrade_dem, make_scene
 from sim_bridge.trajectory import Trajectory, circular, forward, scanning
 
@@ -190,7 +191,7 @@ def run_flight(
     est = {name: sim.estimator(opt, name in mount_known) for name, opt in methods.items()}
     setup_s = time.perf_counter() - t0
     lat: dict[str, list[float]] = {n: [] for n in methods}
-    got: dict[str, list[tuple[float, np.ndarray]]] = {n: [] for n in methods}
+    got: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {n: [] for n in methods}  # t, p, cov NE
     times, p_true, traj, scene = sim.times, sim.p_true, sim.traj, sim.scene
     for k, (t, att, alt, frame) in enumerate(sim.samples()):
         for n, e in est.items():
@@ -200,7 +201,7 @@ def run_flight(
             pe = e.on_frames({"nadir": frame})
             lat[n].append(time.perf_counter() - tc)
             if pe is not None and pe.is_sendable():
-                got[n].append((t, pe.p_body_in_world_m.copy()))
+                got[n].append((t, pe.p_body_in_world_m.copy(), pe.covariance[:2, :2].copy()))
         if log and k % 300 == 0 and k:
             errs = {
                 n: float(np.linalg.norm(g[-1][1] - p_true[k])) if g and g[-1][0] == t else float("nan")
@@ -233,6 +234,8 @@ def run_flight(
             fwd = d_ne[:, 0] * np.cos(yaw) + d_ne[:, 1] * np.sin(yaw)
             right = -d_ne[:, 0] * np.sin(yaw) + d_ne[:, 1] * np.cos(yaw)
             res["mean_error_forward_right_m"] = [float(fwd.mean()), float(right.mean())]
+            # does the covariance sent with each estimate cover its error (sim_bridge.sim)
+            res["covariance_consistency"] = covariance_consistency(d_ne, np.stack([g[2] for g in got[n]]))
             # distance flown (truth) at each estimate, for the drift plot
             cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p_true, axis=0), axis=1))])
             res["distance_at_estimate_m"] = np.interp(te, times, cum)
@@ -372,6 +375,26 @@ def _fix_row(scene: str, r: dict[str, Any]) -> list[Any]:
         bias[1],
         g.get("body_m", nan),
         r.get("horizontal_mean", nan),
+    ]
+
+
+CONS_HEAD = ["method", "sigma/m", "horiz err/m", "NEES mean", "NEES median", "in 95 %"]
+CONS_TITLE = (
+    "covariance sent vs the error (horizontal): mean 1-sigma, mean error, NEES (2 when right), errors inside "
+    "the estimate's own 95 % ellipse"
+)
+
+
+def _consistency_row(name: str, r: dict[str, Any]) -> list[Any]:
+    c = r.get("covariance_consistency", {})
+    nan = float("nan")
+    return [
+        name,
+        c.get("sigma_mean_m", nan),
+        r.get("horizontal_mean", nan),
+        c.get("nees_mean", nan),
+        c.get("nees_median", nan),
+        c.get("within_95", nan),
     ]
 
 
@@ -536,6 +559,8 @@ def main(argv: list[str] | None = None) -> int:
         rows7 = [_row(f"{s} {m}", t7[s][m]) for s in t7 for m in ("vo_only", "terrain_lba")]
         print(table(HEAD, rows7, "Table 7 analogue: all scenes, circular, Table 6 lighting"))
         print(table(FIX_HEAD, [_fix_row(s, t7[s]["terrain_lba"]) for s in t7], FIX_TITLE))
+        rows_c = [_consistency_row(f"{s} {m}", t7[s][m]) for s in t7 for m in ("vo_only", "terrain_lba")]
+        print(table(CONS_HEAD, rows_c, CONS_TITLE))
         print(
             f"mean APE over {len(t7)} scenes: vo_only {summary['vo_only']['mean_of_means_m']:.3f} m, "
             f"terrain_lba {summary['terrain_lba']['mean_of_means_m']:.3f} m "

@@ -188,7 +188,11 @@ def run_demo(a: argparse.Namespace) -> int:
     }
     if abs(a.compass_offset) > 30.0:  # beyond the default search: the vehicle's owner would set it
         overrides["estimator.terrain_lba.heading_search_deg"] = 180.0
-        print("compass more than 30 deg off: the companion searches all headings (heading_search_deg 180)")
+        overrides["estimator.terrain_lba.compass_sigma_deg"] = 180.0
+        print(
+            "compass more than 30 deg off: the companion searches all headings and trusts none until the"
+            " terrain gives one (heading_search_deg 180, compass_sigma_deg 180)"
+        )
     comp_cmd = [sys.executable, "-m", "companion", "run", "--config", a.config]
     for k, v in overrides.items():
         comp_cmd += ["--set", f"{k}={json.dumps(v)}"]
@@ -222,11 +226,13 @@ def run_demo(a: argparse.Namespace) -> int:
                 )
             elif "progress" in msg:
                 p = msg["progress"]
-                err = p["last_error_m"]
+                err, sig = p["last_error_m"], p.get("last_sigma_m", float("nan"))
                 err_s = f"{err:6.2f} m" if err == err else "   -   "
+                sig_s = f" (its sigma {sig:5.2f} m)" if sig == sig else ""
                 print(
                     f"  t {p['t_s']:6.1f}/{p['duration_s']:.0f} s   frames {p['frames']:5d}   "
-                    f"estimates accepted {p['estimates']:5d}   rejected {p['rejected']:3d}   last error {err_s}",
+                    f"estimates accepted {p['estimates']:5d}   rejected {p['rejected']:3d}   "
+                    f"last error {err_s}{sig_s}",
                     flush=True,
                 )
                 if comp is not None and comp.poll() is not None:
@@ -285,5 +291,11 @@ def run_demo(a: argparse.Namespace) -> int:
         f"{stats['matched']:>10d} {stats['mean']:>8.3f} {stats['median']:>8.3f} {stats['rmse']:>8.3f} "
         f"{stats['max']:>8.3f} {stats['std']:>8.3f}"
     )
+    cons = summary.get("covariance_consistency", {})
+    if cons.get("count"):
+        print(
+            f"the companion's own horizontal sigma: mean {cons['sigma_mean_m']:.2f} m; errors inside its 95 % "
+            f"ellipse: {100.0 * cons['within_95']:.0f} % of the estimates (95 % when it knows how wrong it is)"
+        )
     print(f"wrote {truth.name}, {est.name} (TUM), {png.name}, ape.json in {run_dir}")
     return 0

@@ -20,12 +20,13 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.stats import chi2
 
 from companion.constants import GRAVITY_MPS2
 from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
@@ -124,6 +125,8 @@ class SimResult:
     est_truth_p: np.ndarray
     """(N, 3) truth at each estimate's own time (for the position errors of the summary)."""
     summary: dict[str, Any] = field(default_factory=dict)
+    est_cov_ne: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    """(N, 2, 2) the horizontal covariance each accepted estimate came with (NaN: none sent)."""
 
 
 def write_tum(path: Path, t_s: np.ndarray, p: np.ndarray, rpy: np.ndarray | None = None) -> None:
@@ -288,11 +291,12 @@ class SimVehicle:
 
     def _progress_report(self, t_s: float) -> dict[str, Any]:
         recs = self.autopilot.accepted()
-        err = float("nan")
+        err = sigma = float("nan")
         if recs:
             r = recs[-1]
             t_est = self._sim_t(self._world_us(r.usec))
             err = float(np.linalg.norm(r.p_ned_m[:2] - self.traj.state_at(t_est).p_world[:2]))
+            sigma = float(np.sqrt(np.trace(_cov_ne(r.covariance))))
         return {
             "t_s": round(t_s, 1),
             "duration_s": self.duration_s,
@@ -300,6 +304,7 @@ class SimVehicle:
             "estimates": len(recs),
             "rejected": sum(self.autopilot.rejected().values()),
             "last_error_m": err,
+            "last_sigma_m": sigma,  # the estimate's own horizontal 1-sigma (root of the trace)
         }
 
     def _world_us(self, autopilot_us: int) -> int:
@@ -327,6 +332,7 @@ class SimVehicle:
             est_truth_p=np.array([s.p_world for s in self.traj.states(t_est)] if len(t_est) else []).reshape(
                 -1, 3
             ),
+            est_cov_ne=np.array([_cov_ne(r.covariance) for r in recs]).reshape(-1, 2, 2),
         )
 
     def distance_m(self) -> float:
@@ -351,6 +357,37 @@ def position_error_stats(res: SimResult) -> dict[str, float | int]:
     }
 
 
+CHI2_2DOF_95 = float(chi2.ppf(0.95, 2))  # an error inside the 95 % ellipse of its 2-D covariance
+
+
+def _cov_ne(urt21: Sequence[float]) -> np.ndarray:
+    """The north-east block of a MAVLink 21-element pose covariance (row-major upper triangle)."""
+    c = np.asarray(urt21, float)
+    return np.array([[c[0], c[1]], [c[1], c[6]]])
+
+
+def covariance_consistency(err_ne: np.ndarray, cov_ne: np.ndarray) -> dict[str, float | int]:
+    """Does the estimator know how wrong it is? err_ne: (N, 2) horizontal errors against the truth (m);
+    cov_ne: (N, 2, 2) the covariance each estimate came with. Returns, over the estimates with a usable
+    covariance: count, the mean reported 1-sigma (root of the trace, m), the mean and median normalised
+    error squared (NEES, 2 dof: 2 on average when the covariance is right) and the fraction of errors inside
+    the estimate's own 95 % ellipse (0.95 when right; lower = over-confident)."""
+    err_ne = np.asarray(err_ne, float).reshape(-1, 2)
+    cov_ne = np.asarray(cov_ne, float).reshape(-1, 2, 2)
+    ok = np.all(np.isfinite(cov_ne), axis=(1, 2)) & (np.linalg.det(np.nan_to_num(cov_ne)) > 0)
+    if not ok.any():
+        return {"count": 0}
+    e, c = err_ne[ok], cov_ne[ok]
+    nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(c), e)
+    return {
+        "count": int(ok.sum()),
+        "sigma_mean_m": float(np.mean(np.sqrt(c[:, 0, 0] + c[:, 1, 1]))),
+        "nees_mean": float(np.mean(nees)),
+        "nees_median": float(np.median(nees)),
+        "within_95": float(np.mean(nees <= CHI2_2DOF_95)),
+    }
+
+
 def save_result(res: SimResult, out_dir: Path, cfg: SimConfig, traj: Trajectory) -> dict[str, Any]:
     """Write truth.tum, estimate.tum and sim_summary.json into ``out_dir``; return the summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -367,6 +404,9 @@ def save_result(res: SimResult, out_dir: Path, cfg: SimConfig, traj: Trajectory)
         "resets": int(res.reset_counters.max()) if len(res.reset_counters) else 0,
         "distance_m": traj.distance_m(traj.t0_s, traj.t0_s + res.duration_s),
         "position_error_m": position_error_stats(res),
+        "covariance_consistency": covariance_consistency(
+            res.est_p[:, :2] - res.est_truth_p[:, :2] if len(res.est_p) else np.zeros((0, 2)), res.est_cov_ne
+        ),
     }
     (out_dir / "sim_summary.json").write_text(json.dumps(summary, indent=2))
     return summary

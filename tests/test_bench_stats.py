@@ -102,3 +102,32 @@ def test_ekf_patch_summary_pairs_each_variant_with_sift_only() -> None:
         assert s[m]["patch_visible"]["E_percent_diff_sem"] == pytest.approx(sem(d))
         assert s[m]["patch_visible"]["E_percent_diff"] == pytest.approx(-0.1, abs=0.03)
         assert s[m]["patch_both"]["mean_error_m_diff"] == pytest.approx(0.05, abs=0.03)
+
+
+def test_covariance_consistency_scores_a_right_and_an_over_confident_covariance() -> None:
+    from sim_bridge.sim import CHI2_2DOF_95, covariance_consistency
+
+    assert CHI2_2DOF_95 == pytest.approx(5.991, abs=1e-3)
+    rng = np.random.default_rng(4)
+    n = 4000
+    # errors drawn from the covariances they come with (each its own, correlated and elongated)
+    a = rng.uniform(0.1, 2.0, n)
+    b = rng.uniform(0.1, 2.0, n)
+    th = rng.uniform(0, np.pi, n)
+    R = np.stack([np.stack([np.cos(th), -np.sin(th)], -1), np.stack([np.sin(th), np.cos(th)], -1)], -1)
+    cov = np.einsum("nij,nj,nkj->nik", R, np.stack([a**2, b**2], -1), R)
+    err = np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.standard_normal((n, 2)))
+    right = covariance_consistency(err, cov)
+    assert right["count"] == n
+    assert right["nees_mean"] == pytest.approx(2.0, abs=0.15)
+    assert right["within_95"] == pytest.approx(0.95, abs=0.015)
+    assert right["sigma_mean_m"] == pytest.approx(np.mean(np.sqrt(a**2 + b**2)), rel=1e-9)
+    # the same errors claimed ten times smaller: NEES x 100, few inside the ellipse
+    over = covariance_consistency(err, cov / 100.0)
+    assert over["nees_mean"] == pytest.approx(100.0 * right["nees_mean"], rel=1e-9)
+    assert over["within_95"] < 0.1
+    # an estimate sent without a covariance (NaN, MAVLink's "unknown") is left out, not counted as inside
+    cov_nan = cov.copy()
+    cov_nan[:10] = np.nan
+    assert covariance_consistency(err, cov_nan)["count"] == n - 10
+    assert covariance_consistency(err[:0], cov[:0]) == {"count": 0}
