@@ -136,6 +136,9 @@ class TerrainLbaConfig(_Strict):
     # how far off the compass may be (deg): the matcher's start-up heading search tries headings this far
     # either side of it (180: no compass); each 2 deg more costs a match per start-up key frame (1.5-3 ms)
     heading_search_deg: Annotated[float, Field(ge=0, le=180)] = 30.0
+    # the compass's 1-sigma error (deg): until the terrain gives the heading, the covariance sent to the
+    # autopilot carries it out along the distance from the start (180: no compass)
+    compass_sigma_deg: Annotated[float, Field(gt=0, le=180)] = 2.0
     # landmarks held on the DEM in the adjustment: the DEM's vertical / horizontal error (m); 0 = off
     terrain_sigma_m: Annotated[float, Field(ge=0)] = 0.5
     terrain_sigma_horizontal_m: Annotated[float, Field(ge=0)] = 0.5

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -46,6 +47,13 @@ def _params_note(check: dict[str, Any] | None) -> str:
     return f"  AUTOPILOT PARAMS {check['worst'].upper()}: {', '.join(sorted(check['problems']))}"
 
 
+def _sigma_note(sigma_h_m: float | None) -> str:
+    """The estimate's own horizontal 1-sigma (root of the trace of its north-east covariance), if any."""
+    if sigma_h_m is None or not math.isfinite(sigma_h_m):
+        return ""
+    return f" sigma {sigma_h_m:.2f} m"
+
+
 def format_status_line(st: dict[str, Any]) -> str:
     """The one-line summary of a status dict (``Daemon.status``; what ``companion watch`` prints too)."""
     link = st["link"]
@@ -57,7 +65,7 @@ def format_status_line(st: dict[str, Any]) -> str:
         f"in {st['fps_in']:5.1f} fps  out {st['fps_out']:5.1f} fps  "
         f"lat p50 {st['latency_p50_ms']:5.1f} ms p99 {st['latency_p99_ms']:5.1f} ms  "
         f"drop {st['frames_dropped_stale']}  bad {bad_s}  unsent {not_sent}  q {st['quality']:.2f}  "
-        f"est {st['estimate_status']}  link {link.get('state', '?')}"
+        f"est {st['estimate_status']}{_sigma_note(st.get('sigma_h_m'))}  link {link.get('state', '?')}"
         f"{'' if link.get('timesync', True) else ' (no timesync)'}"
         f"{_params_note(link.get('params_check'))}"
     )
@@ -292,6 +300,8 @@ class Daemon:
             "quality": self._last_quality,
             "estimate_status": est.status.value if est is not None else "none",
             "position_ned_m": None if est is None else [round(float(v), 2) for v in est.p_body_in_world_m],
+            # the estimate's own horizontal 1-sigma (m): what the autopilot is told to trust it to
+            "sigma_h_m": None if est is None else float(np.sqrt(est.covariance[0, 0] + est.covariance[1, 1])),
             "frames": self.frame_counters(),
             "link": self.link.status(),
             "estimates_log": None if self.estimate_log is None else self.estimate_log.status(),

@@ -23,6 +23,7 @@ STATUS = {
     "not_sent": {"no_estimate": 3, "too_old": 4},
     "quality": 0.29,
     "estimate_status": "ok",
+    "sigma_h_m": 0.4243,
     "link": {
         "state": "up",
         "timesync": True,
@@ -39,8 +40,12 @@ def watch(port: int, *args: str) -> subprocess.CompletedProcess:
 
 def test_status_line_names_what_an_operator_needs() -> None:
     line = format_status_line(STATUS)
-    for part in ("in  15.0 fps", "drop 2", "bad 1 (nadir:truncated 1)", "unsent 4", "est ok", "link up"):
+    for part in ("in  15.0 fps", "drop 2", "bad 1 (nadir:truncated 1)", "unsent 4", "est ok sigma 0.42 m"):
         assert part in line, (part, line)
+    assert "link up" in line
+    # no estimate yet (or one without a covariance): no sigma shown
+    for none in (None, float("nan")):
+        assert "sigma" not in format_status_line({**STATUS, "sigma_h_m": none})
     assert line.endswith("AUTOPILOT PARAMS ERROR: VISO_TYPE")
 
 

@@ -125,6 +125,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         "joint_shift": False,
         "heading_from_matcher": False,
         "heading_search_deg": 12.0,
+        "compass_sigma_deg": 5.0,
         "terrain_sigma_m": 0.7,
         "terrain_sigma_horizontal_m": 0.3,
         "attitude_sigma_rad": 0.004,
@@ -150,6 +151,8 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
                 assert opt.backend.heading_from_matcher is value
             elif key == "heading_search_deg":
                 assert opt.georef.rs_sweep_deg == value
+            elif key == "compass_sigma_deg":
+                assert opt.compass_sigma_rad == pytest.approx(np.radians(value))
             else:
                 assert getattr(opt, key) == value, key
         assert (lba.w_geo, lba.terrain_sigma_m, lba.terrain_sigma_horizontal_m) == (5.0, 0.7, 0.3)

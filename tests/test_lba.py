@@ -19,6 +19,7 @@ from companion.geometry import CameraIntrinsics, make_T, rot_from_rpy, wrap_pi
 from companion.georef.dem import Dem
 from companion.lba.align import align_yaw_translation
 from companion.lba.backend import Backend, BackendJob, BackendOptions, ground_below
+from companion.lba.gauge import gauge_covariance
 from companion.lba.window import LbaOptions, WindowProblem, body_covariance, geo_factor, solve_window
 from companion.vo.geometry import reproject
 from companion.vo.odometry import WindowSnapshot
@@ -234,10 +235,17 @@ def test_backend_gates_a_bad_fix_and_counts_it():
 
     be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0)), locate)
     snap_all = _snapshot(T, P, ok, ol, opx)
+    results = {}
     for k in range(2, len(T)):
         current["k"] = k
-        res = be.process(_first_kfs_job(snap_all, T, k))
+        res = results[k] = be.process(_first_kfs_job(snap_all, T, k))
     assert res.geo["status"] == "rejected"
+    # not placed until eq. 21 on the first fixes; then the result says so, about the centre of those fixes
+    k_al = next(k for k, r in results.items() if r.geo["status"] == "aligned")
+    assert not any(results[k].located for k in range(2, k_al))
+    assert np.all(np.isnan(results[2].pivot_world))
+    np.testing.assert_allclose(results[k_al].pivot_world, np.mean([fixes[k] for k in range(2, k_al + 1)], 0))
+    assert res.located and np.array_equal(res.pivot_world, results[k_al].pivot_world)
     # the outcome carries what the fix said (a replay checks it against truth)
     assert np.allclose(res.geo["p_fix_world"], fixes[len(T) - 1])
     assert res.counters["fix_rejected"] == 1
@@ -475,3 +483,66 @@ def test_gravity_prior_sets_the_body_position_when_fixes_pin_the_ground():
     # measured 0.03 m and 0.15 m (the images alone hold the turn weakly: the ground's relief)
     assert north_err[0.003] < 0.08
     assert north_err[0.5] > 3 * north_err[0.003]
+
+
+def test_gauge_covariance_is_the_start_and_the_heading_carried_along_the_lever():
+    pivot = np.array([10.0, -20.0, -100.0])
+    p = pivot + np.array([30.0, 40.0, 5.0])  # 50 m away
+    sig_p, sig_y = 0.7, np.radians(2.0)
+    C = gauge_covariance(p, pivot, sig_p, sig_y)
+    assert np.allclose(C, C.T) and np.all(np.linalg.eigvalsh(C) > -1e-12)
+    # along the lever only the start's error; across it the heading's, 50 m x 2 deg = 1.75 m
+    u = np.array([30.0, 40.0]) / 50.0
+    v = np.array([-u[1], u[0]])
+    assert u @ C[:2, :2] @ u == pytest.approx(sig_p**2)
+    assert v @ C[:2, :2] @ v == pytest.approx(sig_p**2 + (50.0 * sig_y) ** 2)
+    assert C[5, 5] == pytest.approx(sig_y**2) and C[2, 2] == 0.0 and np.all(C[3:5] == 0.0)
+    # first order of the turn itself: sample the start and the heading, turn the map about the pivot
+    rng = np.random.default_rng(0)
+    n = 40000
+    dpsi = rng.normal(0.0, sig_y, n)
+    dp0 = rng.normal(0.0, sig_p, (n, 2))
+    d = p[:2] - pivot[:2]
+    moved = np.stack(
+        [np.cos(dpsi) * d[0] - np.sin(dpsi) * d[1], np.sin(dpsi) * d[0] + np.cos(dpsi) * d[1]], 1
+    )
+    x = np.column_stack([moved + dp0 - d, dpsi])
+    S = np.cov(x.T)
+    np.testing.assert_allclose(S[:2, :2], C[:2, :2], rtol=0.05, atol=0.02)
+    np.testing.assert_allclose(S[:2, 2], C[:2, 5], rtol=0.05, atol=1e-3)
+    # known heading and position: nothing to add; no compass: capped (heading uniform over the turn, the
+    # lever's sigma at most its length)
+    assert np.all(gauge_covariance(p, pivot, 0.0, 0.0) == 0.0)
+    C_free = gauge_covariance(p, pivot, 0.0, np.pi)
+    assert C_free[5, 5] == pytest.approx(np.pi**2 / 3.0)
+    assert np.sqrt(np.trace(C_free[:2, :2])) <= 50.0 + 1e-9
+
+
+@pytest.mark.parametrize("fix_noise_m", [0.05, 1.0])
+def test_reported_covariance_grows_when_the_fixes_scatter_beyond_their_sigma(fix_noise_m):
+    """The a-posteriori variance factor of the window's geo term scales the covariance reported for the
+    newest key frame when the fixes scatter more than their sigma (sigma0 / sqrt(w_G) = 0.32 m here), and
+    leaves it when they scatter less; the adjustment itself is the same either way."""
+    T, P, ok, ol, opx, rng = _scene(5)
+    fixes = {i: T[i, :3, 3] + rng.normal(0, fix_noise_m, 3) for i in range(len(T))}
+    snap_all = _snapshot(T, P, ok, ol, opx)
+    out = {}
+    for vf in (False, True):
+        current = {"k": 0}
+
+        def locate(image, R, p, alt, solve_rotation_scale):
+            return _Fix(fixes[current["k"]])
+
+        be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0), variance_factor=vf), locate)
+        for k in range(2, len(T)):
+            current["k"] = k
+            res = be.process(_first_kfs_job(snap_all, T, k))
+        out[vf] = res
+    assert out[True].counters["fix_accepted"] >= 6
+    np.testing.assert_array_equal(out[True].T_world_cam, out[False].T_world_cam)
+    ratio = out[True].cov_newest / out[False].cov_newest
+    np.testing.assert_allclose(ratio, ratio[0, 0], rtol=1e-9)  # one factor on the whole covariance
+    if fix_noise_m < 0.3:
+        assert ratio[0, 0] == 1.0
+    else:
+        assert 3.0 < ratio[0, 0] < 30.0  # about (1.0 / 0.32)^2 less what the adjustment fits

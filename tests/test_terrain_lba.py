@@ -124,6 +124,24 @@ def test_covariance_from_marginals_not_constant(lba_run):
     assert first.status is EstimateStatus.INITIALISING and not first.is_sendable()
 
 
+def test_covariance_owns_the_compass_heading_until_the_terrain_gives_it(lba_run):
+    """Until the fixes place the map, the marginals are relative to the pinned start: the covariance sent
+    adds the start's error and the compass's carried out from it (``companion.lba.gauge``)."""
+    out, counters = lba_run
+    assert counters["alignments"] >= 2  # placed, and the heading found, within the flight
+    sent = [pe for pe, _ in out if pe is not None and pe.is_sendable()]
+    sig_h = np.array([np.sqrt(pe.covariance[0, 0] + pe.covariance[1, 1]) for pe in sent])
+    sig_yaw = np.degrees([np.sqrt(pe.covariance[5, 5]) for pe in sent])
+    before = np.array([pe.info["geo"] in (None, "pending") for pe in sent])
+    assert before[0] and not before[-1]
+    assert np.all(sig_yaw[before] >= 2.0)  # the compass's 2 deg (compass_sigma_rad)
+    assert np.all(sig_h[before] >= OPT.initial_sigma_m)  # the start's 1 m
+    n0 = int(before.sum())
+    assert sig_h[n0 - 1] > sig_h[0] + 0.1  # the heading's share grows with the distance from the start
+    # the terrain gave the heading and the fixes the place: well under the compass, under the start's error
+    assert np.all(sig_yaw[-20:] < 1.0) and np.all(sig_h[-20:] < 0.7 * OPT.initial_sigma_m)
+
+
 def test_deterministic_inline_and_in_worker_process(flight, lba_run):
     out_a, _ = lba_run
     short = (flight[0], flight[1], flight[2][:90], flight[3])

@@ -44,6 +44,7 @@ from companion.georef.dem import Dem
 from companion.georef.georef import GeoReferencer, GeorefOptions
 from companion.georef.shading import Sun
 from companion.lba.backend import Backend, BackendJob, BackendOptions, BackendResult
+from companion.lba.gauge import gauge_covariance
 from companion.lba.window import LbaOptions, body_covariance
 from companion.types import (
     AltimeterSample,
@@ -110,6 +111,9 @@ class TerrainLbaOptions:
     altimeter_max_age_us: int = 200_000
     initial_sigma_m: float = 1.0  # 1-sigma of the initial position (covariance before any adjustment)
     initial_sigma_rad: float = float(np.radians(1.0))
+    # 1-sigma of the compass heading the map starts from: until the terrain gives the heading, the estimate's
+    # covariance carries it out along the lever from the start (``companion.lba.gauge``); no compass: pi
+    compass_sigma_rad: float = float(np.radians(2.0))
     drift_sigma_per_m: float = 0.02  # position covariance growth per metre flown since the adjusted key frame
     drift_rad_per_m: float = 1e-4  # attitude covariance growth per metre
     vo: VoOptions = field(default_factory=VoOptions)
@@ -252,6 +256,15 @@ class TerrainLbaEstimator:
         self._in_flight: tuple[int, int, int] | None = None  # (kf id, epoch, due frame)
         self._sync_result: BackendResult | str | None = None
         self._cov_kf: tuple[int, np.ndarray] | None = None  # (kf id, body covariance) of the last result
+        # where the map sits in the world until the fixes place it (``companion.lba.gauge``): its start and
+        # that start's 1-sigma; then the centre of the fixes that placed it. Once placed (or turned by the
+        # terrain), so until a re-initialisation: a replacement worker places the same map again.
+        self._gauge_pivot = self.initial_p_world.copy()
+        self._gauge_sigma_m = self.opt.initial_sigma_m
+        self._located = False
+        self._yaw_known = False
+        self._fix_pivot = np.full(3, np.nan)
+        self._last_cov: np.ndarray | None = None
         self.last_result: BackendResult | None = None
         # the key frames' geo-fixes as the back-end reported them (the newest GEO_FIX_LOG_LEN), for replays
         self.geo_fixes: deque[GeoFixRecord] = deque(maxlen=GEO_FIX_LOG_LEN)
@@ -529,6 +542,10 @@ class TerrainLbaEstimator:
         )
         self.last_result = res
         self._log_alignment(res.geo)
+        if res.located and np.all(np.isfinite(res.pivot_world)):
+            self._located = True
+            self._fix_pivot = np.asarray(res.pivot_world, float)
+        self._yaw_known = self._yaw_known or res.yaw_known
         kf = self.vo.kfs.get(res.newest_kf)
         if "p_fix_world" in res.geo and kf is not None:
             self.geo_fixes.append(GeoFixRecord.of(kf.stamp_us, res.geo))
@@ -540,16 +557,31 @@ class TerrainLbaEstimator:
             )
 
     # -- frames -------------------------------------------------------------------------------------
-    def _covariance(self) -> np.ndarray:
+    def _covariance(self, p_body: np.ndarray) -> np.ndarray:
+        """The adjustment's marginal of the newest key frame, grown by the distance flown since, plus the
+        map's own place in the world while the fixes have not given it (``companion.lba.gauge``)."""
         o = self.opt
         if self._cov_kf is not None and self._cov_kf[0] in self._kf_dist:
             base = self._cov_kf[1]
             d = self._dist_m - self._kf_dist[self._cov_kf[0]]
         else:
             base = np.diag([o.initial_sigma_m**2] * 3 + [o.initial_sigma_rad**2] * 3)
+            if not self._located:
+                base[:2, :2] = base[5, 5] = 0.0  # the start's horizontal error and heading: the gauge's
             d = self._dist_m
         grow = np.diag([(o.drift_sigma_per_m * d) ** 2] * 3 + [(o.drift_rad_per_m * d) ** 2] * 3)
-        return base + grow
+        cov = base + grow
+        if not self._located:
+            # held at the start: its error, and the compass's carried out from it (a turn by the terrain
+            # before the fixes place the map keeps what was flown on the old heading: the lever stays)
+            g = gauge_covariance(p_body, self._gauge_pivot, self._gauge_sigma_m, o.compass_sigma_rad)
+            if self._yaw_known:
+                g[5, :] = g[:, 5] = 0.0
+            cov = cov + g
+        elif not self._yaw_known:
+            cov = cov + gauge_covariance(p_body, self._fix_pivot, 0.0, o.compass_sigma_rad)
+        self._last_cov = cov
+        return cov
 
     def _reinit(self) -> None:
         self.vo.reset()
@@ -560,6 +592,12 @@ class TerrainLbaEstimator:
         self._kf_frame.clear()
         self._cov_kf = None
         self._alt_offsets = []
+        # the new map starts here on the compass heading again, as well known as the last estimate was
+        if self._last_p_body is not None:
+            self._gauge_pivot = self._last_p_body.copy()
+            if self._last_cov is not None:
+                self._gauge_sigma_m = float(np.sqrt(np.linalg.eigvalsh(self._last_cov[:2, :2])[-1]))
+        self._located = self._yaw_known = False
 
     def on_frames(self, frames: dict[str, Frame]) -> PoseEstimate | None:
         frame = frames.get("nadir")
@@ -621,7 +659,7 @@ class TerrainLbaEstimator:
             stamp_us=t,
             p_body_in_world_m=p_body,
             rpy_rad=rpy_from_rot(R_wb),
-            covariance=self._covariance(),
+            covariance=self._covariance(p_body),
             reset_counter=self.reset_counter,
             quality=float(min(1.0, st.n_inliers / max(self.opt.vo.tracker.max_features, 1))),
             status=EstimateStatus.OK,
@@ -654,7 +692,7 @@ class TerrainLbaEstimator:
             stamp_us=t,
             p_body_in_world_m=np.array(p, float),
             rpy_rad=np.array([0.0, 0.0, self.initial_yaw_rad]),
-            covariance=self._covariance(),
+            covariance=self._covariance(np.asarray(p, float)),
             reset_counter=self.reset_counter,
             quality=0.0,
             status=status,
