@@ -116,14 +116,15 @@ def estimator_line(status: dict[str, Any] | None) -> str:
 
 def alignment_notes(log_path: Path, limit: int = 6) -> list[str]:
     """The companion's log lines that say how its map was put in the world (terrain_lba's start-up heading
-    and alignments), without the time and level."""
+    and alignments) and when the terrain stopped and started giving fixes, without the time and level."""
     key = "companion.estimators.terrain_lba: "
     try:
         lines = log_path.read_text(errors="replace").splitlines()
     except OSError:
         return []
     notes = [ln[ln.index(key) + len(key) :] for ln in lines if key in ln]
-    return [n for n in notes if n.startswith(("heading from the terrain", "map "))][:limit]
+    keep = ("heading from the terrain", "map ", "no usable terrain fix", "terrain fixes again")
+    return [n for n in notes if n.startswith(keep)][:limit]
 
 
 def run_demo(a: argparse.Namespace) -> int:

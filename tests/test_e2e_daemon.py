@@ -303,6 +303,10 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
         assert c["fix_accepted"] + c["fix_rejected"] + c["fix_failed"] <= c["fix_attempts"], c
         assert c["backend_errors"] == 0 and c["lost"] == 0 and c["lba_failed"] == 0, c
         assert isinstance(st["estimator"]["no_fix_reasons"], dict)
+        # every estimate the autopilot took came with a covariance, and it owned up to the error
+        cons = summary["covariance_consistency"]
+        assert cons["count"] == accepted and cons["within_95"] >= WITHIN_95_MIN, cons
+        assert st["sigma_h_m"] is not None and 0.0 < st["sigma_h_m"] < 10.0, st["sigma_h_m"]
 
 
 class PtyBridge:

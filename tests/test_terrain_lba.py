@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from companion.constants import R_BODY_CAM_NADIR
-from companion.estimators.terrain_lba import TerrainLbaEstimator, TerrainLbaOptions
+from companion.estimators.terrain_lba import FixDrought, TerrainLbaEstimator, TerrainLbaOptions
 from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
 from companion.georef.shading import Sun
 from companion.types import AltimeterSample, AttitudeSample, EstimateStatus, Frame
@@ -259,3 +259,18 @@ def test_alignment_and_start_up_heading_are_logged_for_the_pilot(caplog) -> None
     text = caplog.text
     assert "map turned by +19.6 deg (coarse)" in text and "map turned by +0.42 deg" in text
     assert "map aligned to the geo-fixes" in text
+
+
+def test_fix_drought_tells_when_the_terrain_stops_and_starts_giving_fixes() -> None:
+    d = FixDrought(4)
+    # no geo-referencing asked: nothing either way; a pending fix (before the first alignment) is a fix
+    assert [d.update(s) for s in ("none", "pending", "", "accepted")] == [None] * 4
+    notes = [d.update(s) for s in ("failed:low_quality", "rejected", "failed:low_quality", "failed:off_dem")]
+    assert notes[:3] == [None] * 3 and notes[3] is not None
+    assert notes[3].startswith("no usable terrain fix in the last 4 key frames (low_quality 2, ")
+    assert "off_dem 1" in notes[3] and "rejected 1" in notes[3]
+    # said once per run, and the end of the run is said too
+    assert d.update("failed:low_quality") is None
+    assert d.update("aligned") == "terrain fixes again, after 5 key frames without"
+    # a run shorter than the threshold says nothing
+    assert [d.update(s) for s in ("rejected", "rejected", "accepted")] == [None] * 3

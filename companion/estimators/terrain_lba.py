@@ -89,6 +89,42 @@ class GeoFixRecord:
         )
 
 
+class FixDrought:
+    """Tells the pilot when the terrain stops giving fixes, and when it gives them again.
+
+    ``update`` takes each key frame's back-end outcome ("accepted", "failed:low_quality", "rejected", ...)
+    and returns a line for the log, or None: one when ``threshold`` key frames in a row had no usable fix
+    (failed, or refused by the gate), naming why, and one when a fix is used again after such a run. A fix
+    waiting for the first alignment ("pending") is a usable one; "none" (no geo-referencing asked) is not
+    counted either way."""
+
+    USABLE = ("accepted", "pending", "aligned", "aligned_yaw", "realigned")
+
+    def __init__(self, threshold: int) -> None:
+        self.threshold = max(int(threshold), 1)
+        self.run = 0
+        self.why: dict[str, int] = {}
+
+    def update(self, status: str) -> str | None:
+        if status in ("", "none"):
+            return None
+        if status in self.USABLE:
+            n, self.run, self.why = self.run, 0, {}
+            if n >= self.threshold:
+                return f"terrain fixes again, after {n} key frames without"
+            return None
+        self.run += 1
+        reason = status.removeprefix("failed:")
+        self.why[reason] = self.why.get(reason, 0) + 1
+        if self.run == self.threshold:
+            why = ", ".join(f"{k} {v}" for k, v in sorted(self.why.items(), key=lambda kv: -kv[1]))
+            return (
+                f"no usable terrain fix in the last {self.run} key frames ({why}): position from the visual "
+                "odometry alone, its sigma growing with the distance flown"
+            )
+        return None
+
+
 @dataclass(frozen=True)
 class TerrainLbaOptions:
     window_size: int = 15  # key frames in the sliding window of the adjustment (paper: 15)
@@ -116,6 +152,7 @@ class TerrainLbaOptions:
     compass_sigma_rad: float = float(np.radians(2.0))
     drift_sigma_per_m: float = 0.02  # position covariance growth per metre flown since the adjusted key frame
     drift_rad_per_m: float = 1e-4  # attitude covariance growth per metre
+    fix_drought_keyframes: int = 10  # key frames in a row without a usable fix before the log says so (~13 s)
     vo: VoOptions = field(default_factory=VoOptions)
     backend: BackendOptions = field(default_factory=BackendOptions)
     georef: GeorefOptions = field(
@@ -266,6 +303,7 @@ class TerrainLbaEstimator:
         self._fix_pivot = np.full(3, np.nan)
         self._last_cov: np.ndarray | None = None
         self.last_result: BackendResult | None = None
+        self._drought = FixDrought(self.opt.fix_drought_keyframes)
         # the key frames' geo-fixes as the back-end reported them (the newest GEO_FIX_LOG_LEN), for replays
         self.geo_fixes: deque[GeoFixRecord] = deque(maxlen=GEO_FIX_LOG_LEN)
         # front-end totals; ``counters`` adds the back-end's (see there)
@@ -542,6 +580,9 @@ class TerrainLbaEstimator:
         )
         self.last_result = res
         self._log_alignment(res.geo)
+        note = self._drought.update(str(res.geo.get("status", "")))
+        if note is not None:
+            (log.warning if note.startswith("no usable") else log.info)("%s", note)
         if res.located and np.all(np.isfinite(res.pivot_world)):
             self._located = True
             self._fix_pivot = np.asarray(res.pivot_world, float)
