@@ -35,6 +35,7 @@ from sim_bridge.terrain import degrade_dem, make_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 5.0  # low enough for the renderer and the estimator on a loaded 2-core CI machine
+WITHIN_95_MIN = 0.5  # terrain_lba: share of the estimates whose error is inside their own 95 % ellipse
 
 
 @pytest.fixture(scope="module")

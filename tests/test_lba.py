@@ -527,12 +527,12 @@ def test_reported_covariance_grows_when_the_fixes_scatter_beyond_their_sigma(fix
     fixes = {i: T[i, :3, 3] + rng.normal(0, fix_noise_m, 3) for i in range(len(T))}
     snap_all = _snapshot(T, P, ok, ol, opx)
     out = {}
+    current = {"k": 0}
+
+    def locate(image, R, p, alt, solve_rotation_scale):
+        return _Fix(fixes[current["k"]])
+
     for vf in (False, True):
-        current = {"k": 0}
-
-        def locate(image, R, p, alt, solve_rotation_scale):
-            return _Fix(fixes[current["k"]])
-
         be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0), variance_factor=vf), locate)
         for k in range(2, len(T)):
             current["k"] = k
