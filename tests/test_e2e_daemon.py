@@ -35,7 +35,9 @@ from sim_bridge.terrain import degrade_dem, make_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 5.0  # low enough for the renderer and the estimator on a loaded 2-core CI machine
-WITHIN_95_MIN = 0.5  # terrain_lba: share of the estimates whose error is inside their own 95 % ellipse
+# terrain_lba: share of the estimates whose error is inside their own 95 % ellipse (measured 1.0 in three runs,
+# sigma 1.3-1.5 m over this start-up flight: the start and the compass are still in it)
+WITHIN_95_MIN = 0.8
 
 
 @pytest.fixture(scope="module")
