@@ -123,7 +123,7 @@ def alignment_notes(log_path: Path, limit: int = 6) -> list[str]:
     except OSError:
         return []
     notes = [ln[ln.index(key) + len(key) :] for ln in lines if key in ln]
-    keep = ("heading from the terrain", "map ", "no usable terrain fix", "terrain fixes again")
+    keep = ("heading from the terrain", "map ", "no terrain fix used", "terrain fixes again")
     return [n for n in notes if n.startswith(keep)][:limit]
 
 

@@ -18,12 +18,12 @@ def test_alignment_notes_quote_the_heading_and_alignment_lines_only(tmp_path: Pa
         + prefix
         + "map aligned to the geo-fixes\n"
         + prefix.replace("INFO   ", "WARNING")
-        + "no usable terrain fix in the last 10 key frames (low_quality 10): position from the visual odometry\n"
+        + "no terrain fix used in the last 10 key frames (low_quality 10): position from the visual odometry\n"
         + "2026-11-23 06:03:40,000 WARNING companion.estimators.terrain_lba: terrain_lba back-end worker hung\n"
     )
     assert alignment_notes(log) == [
         "heading from the terrain: map turned by -21.0 deg (coarse)",
         "map aligned to the geo-fixes",
-        "no usable terrain fix in the last 10 key frames (low_quality 10): position from the visual odometry",
+        "no terrain fix used in the last 10 key frames (low_quality 10): position from the visual odometry",
     ]
     assert alignment_notes(tmp_path / "missing.log") == []

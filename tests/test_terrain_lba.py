@@ -263,14 +263,17 @@ def test_alignment_and_start_up_heading_are_logged_for_the_pilot(caplog) -> None
 
 def test_fix_drought_tells_when_the_terrain_stops_and_starts_giving_fixes() -> None:
     d = FixDrought(4)
-    # no geo-referencing asked: nothing either way; a pending fix (before the first alignment) is a fix
-    assert [d.update(s) for s in ("none", "pending", "", "accepted")] == [None] * 4
+    # no geo-referencing asked: nothing either way
+    assert [d.update(s) for s in ("none", "", "accepted")] == [None] * 3
     notes = [d.update(s) for s in ("failed:low_quality", "rejected", "failed:low_quality", "failed:off_dem")]
     assert notes[:3] == [None] * 3 and notes[3] is not None
-    assert notes[3].startswith("no usable terrain fix in the last 4 key frames (low_quality 2, ")
-    assert "off_dem 1" in notes[3] and "rejected 1" in notes[3]
+    assert notes[3].startswith("no terrain fix used in the last 4 key frames (low_quality 2, ")
+    assert "off_dem 1" in notes[3] and "refused by the gate 1" in notes[3]
     # said once per run, and the end of the run is said too
     assert d.update("failed:low_quality") is None
     assert d.update("aligned") == "terrain fixes again, after 5 key frames without"
     # a run shorter than the threshold says nothing
     assert [d.update(s) for s in ("rejected", "rejected", "accepted")] == [None] * 3
+    # fixes that wait for an alignment they never get (a compass far off) count too
+    notes = [d.update(s) for s in ("pending", "failed:low_quality", "pending", "pending")]
+    assert notes[3] is not None and "not yet aligned 3" in notes[3]

@@ -93,12 +93,13 @@ class FixDrought:
     """Tells the pilot when the terrain stops giving fixes, and when it gives them again.
 
     ``update`` takes each key frame's back-end outcome ("accepted", "failed:low_quality", "rejected", ...)
-    and returns a line for the log, or None: one when ``threshold`` key frames in a row had no usable fix
-    (failed, or refused by the gate), naming why, and one when a fix is used again after such a run. A fix
-    waiting for the first alignment ("pending") is a usable one; "none" (no geo-referencing asked) is not
-    counted either way."""
+    and returns a line for the log, or None: one when ``threshold`` key frames in a row had no fix the
+    adjustment used (failed, refused by the gate, or still waiting for fixes that agree on the first
+    alignment: a compass far off gives fixes that never do), naming why, and one when a fix is used again
+    after such a run. "none" (no geo-referencing asked) is not counted either way."""
 
-    USABLE = ("accepted", "pending", "aligned", "aligned_yaw", "realigned")
+    USABLE = ("accepted", "aligned", "aligned_yaw", "realigned")
+    REASONS = {"pending": "not yet aligned", "rejected": "refused by the gate"}
 
     def __init__(self, threshold: int) -> None:
         self.threshold = max(int(threshold), 1)
@@ -114,12 +115,12 @@ class FixDrought:
                 return f"terrain fixes again, after {n} key frames without"
             return None
         self.run += 1
-        reason = status.removeprefix("failed:")
+        reason = self.REASONS.get(status, status.removeprefix("failed:"))
         self.why[reason] = self.why.get(reason, 0) + 1
         if self.run == self.threshold:
             why = ", ".join(f"{k} {v}" for k, v in sorted(self.why.items(), key=lambda kv: -kv[1]))
             return (
-                f"no usable terrain fix in the last {self.run} key frames ({why}): position from the visual "
+                f"no terrain fix used in the last {self.run} key frames ({why}): position from the visual "
                 "odometry alone, its sigma growing with the distance flown"
             )
         return None
@@ -582,7 +583,7 @@ class TerrainLbaEstimator:
         self._log_alignment(res.geo)
         note = self._drought.update(str(res.geo.get("status", "")))
         if note is not None:
-            (log.warning if note.startswith("no usable") else log.info)("%s", note)
+            (log.warning if note.startswith("no terrain fix") else log.info)("%s", note)
         if res.located and np.all(np.isfinite(res.pivot_world)):
             self._located = True
             self._fix_pivot = np.asarray(res.pivot_world, float)
