@@ -430,20 +430,15 @@ class Backend:
             self.rejected.clear()
         return out, T_align
 
-    def _variance_factor(self, kf_ids: np.ndarray, T_world_cam: np.ndarray) -> float:
+    def _variance_factor(self, solved: WindowSnapshot) -> float:
         """max(1, a-posteriori variance factor of the window's geo-fixes' horizontal residuals)."""
-        w = max(self.opt.lba.w_geo, 1e-9)
-        r2 = []
-        for i, k in enumerate(kf_ids):
-            f = self.fixes.get(int(k))
-            if f is None:
-                continue
-            p = T_world_cam[i, :3, :3] @ f[3:6] + T_world_cam[i, :3, 3]
-            r = f[:2] - p[:2]
-            r2.append(float(r @ r) * w / (self.opt.geo_sigma_m**2 * f[6]))
-        if len(r2) < 3:
+        ks = [int(k) for k in solved.kf_ids if int(k) in self.fixes]
+        if len(ks) < 3:
             return 1.0
-        return max(1.0, float(np.sum(r2)) / (2 * len(r2) - 3))
+        f = np.stack([self.fixes[k] for k in ks])
+        r = f[:, :2] - self._vo_points(solved, self.fixes, ks)[:, :2]
+        r2 = np.sum(r * r, axis=1) * max(self.opt.lba.w_geo, 1e-9) / (self.opt.geo_sigma_m**2 * f[:, 6])
+        return max(1.0, float(np.sum(r2)) / (2 * len(ks) - 3))
 
     def process(self, job: BackendJob) -> BackendResult:
         if job.epoch != self.epoch:
@@ -513,7 +508,7 @@ class Backend:
             R = sol.T_world_cam[-1, :3, :3]
             self.cov_pos_newest = R @ cov_newest[3:, 3:] @ R.T
         if self.opt.variance_factor and np.all(np.isfinite(cov_newest)):
-            cov_newest = cov_newest * self._variance_factor(s.kf_ids, sol.T_world_cam)
+            cov_newest = cov_newest * self._variance_factor(replace(s, T_world_cam=sol.T_world_cam))
         out_kf = s.kf_ids[s.obs_kf[~sol.obs_inlier]]
         out_lm = s.lm_ids[s.obs_lm[~sol.obs_inlier]]
         if job.newest_kf in self.fixes and int(s.kf_ids[-1]) == job.newest_kf:
