@@ -510,6 +510,10 @@ def test_gauge_covariance_is_the_start_and_the_heading_carried_along_the_lever()
     S = np.cov(x.T)
     np.testing.assert_allclose(S[:2, :2], C[:2, :2], rtol=0.05, atol=0.02)
     np.testing.assert_allclose(S[:2, 2], C[:2, 5], rtol=0.05, atol=1e-3)
+    # turned to the right heading since: the lever's share stays, the heading's own goes
+    C_turned = gauge_covariance(p, pivot, sig_p, sig_y, heading_known=True)
+    np.testing.assert_array_equal(C_turned[:2, :2], C[:2, :2])
+    assert np.all(C_turned[5] == 0.0) and np.all(C_turned[:, 5] == 0.0)
     # known heading and position: nothing to add; no compass: capped (heading uniform over the turn, the
     # lever's sigma at most its length)
     assert np.all(gauge_covariance(p, pivot, 0.0, 0.0) == 0.0)

@@ -616,10 +616,9 @@ class TerrainLbaEstimator:
         if not self._located:
             # held at the start: its error, and the compass's carried out from it (a turn by the terrain
             # before the fixes place the map keeps what was flown on the old heading: the lever stays)
-            g = gauge_covariance(p_body, self._gauge_pivot, self._gauge_sigma_m, o.compass_sigma_rad)
-            if self._yaw_known:
-                g[5, :] = g[:, 5] = 0.0
-            cov = cov + g
+            cov = cov + gauge_covariance(
+                p_body, self._gauge_pivot, self._gauge_sigma_m, o.compass_sigma_rad, self._yaw_known
+            )
         elif not self._yaw_known:
             cov = cov + gauge_covariance(p_body, self._fix_pivot, 0.0, o.compass_sigma_rad)
         self._last_cov = cov

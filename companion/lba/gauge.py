@@ -22,7 +22,11 @@ _UNIFORM_YAW_SIGMA_RAD = float(np.pi / np.sqrt(3.0))  # sigma of a heading unifo
 
 
 def gauge_covariance(
-    p_world: np.ndarray, pivot_world: np.ndarray, sigma_pos_m: float, sigma_yaw_rad: float
+    p_world: np.ndarray,
+    pivot_world: np.ndarray,
+    sigma_pos_m: float,
+    sigma_yaw_rad: float,
+    heading_known: bool = False,
 ) -> np.ndarray:
     """(6, 6) covariance over (x, y, z, roll, pitch, yaw) NED to add to a map-relative pose covariance.
 
@@ -30,6 +34,8 @@ def gauge_covariance(
     the fixes that placed it). sigma_pos_m: 1-sigma horizontal error of the map at the pivot (0: placed by
     the fixes). sigma_yaw_rad: 1-sigma of the map's heading (0: known from the terrain); a compass-free
     start (sigma beyond ~1 rad) is capped at a heading uniform over the turn, and its lever at 1 rad.
+    heading_known: the terrain has since turned the map to the right heading, but what was flown on the old
+    one is still off by it: the lever's share stays, the heading's own (and its cross terms) go.
     """
     out = np.zeros((6, 6))
     out[0, 0] = out[1, 1] = sigma_pos_m**2
@@ -39,6 +45,7 @@ def gauge_covariance(
         s_lever = min(sigma_yaw_rad, _MAX_LINEAR_YAW_RAD)
         s_yaw = min(sigma_yaw_rad, _UNIFORM_YAW_SIGMA_RAD)
         out[:2, :2] += s_lever**2 * np.outer(J, J)
-        out[5, 5] = s_yaw**2
-        out[:2, 5] = out[5, :2] = s_lever * s_yaw * J
+        if not heading_known:
+            out[5, 5] = s_yaw**2
+            out[:2, 5] = out[5, :2] = s_lever * s_yaw * J
     return out
