@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
 import time
 from collections.abc import Sequence
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -23,13 +25,40 @@ def parser(name: str, description: str) -> argparse.ArgumentParser:
     return p
 
 
+_NUMERIC_PACKAGES = ("numpy", "scipy", "opencv-python-headless", "gtsam", "evo")
+
+
+def _cpu_model() -> str:
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
 def machine() -> dict[str, Any]:
-    """What the numbers were measured on."""
+    """What the numbers were measured on. The flights' figures are chaotic in the last bits of floating
+    point: another CPU (its SIMD kernels in numpy, OpenBLAS, OpenCV) or another build of these libraries
+    moves a scene's APE by a few per cent (README), so the JSON says which ones made them."""
+    from threadpoolctl import threadpool_info
+
+    def version(name: str) -> str | None:
+        try:
+            return metadata.version(name)
+        except metadata.PackageNotFoundError:
+            return None
+
     return {
         "cpu_count": os.cpu_count(),
         "processor": platform.processor() or platform.machine(),
+        "cpu_model": _cpu_model(),
+        "numpy_simd_found": np.show_config(mode="dicts").get("SIMD Extensions", {}).get("found"),
+        "blas": sorted(
+            {f"{i['internal_api']} {i.get('version')} {i.get('architecture')}" for i in threadpool_info()}
+        ),
         "python": platform.python_version(),
         "numpy": np.__version__,
+        "packages": {n: version(n) for n in _NUMERIC_PACKAGES},
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
 
