@@ -1,5 +1,5 @@
 """The EKF benchmark's statistics: "dual worse than the better single camera beyond noise", and the
-uncertainty of the averaged improvements."""
+uncertainty of the averaged improvements; what every benchmark JSON says about the machine."""
 
 from __future__ import annotations
 
@@ -131,3 +131,23 @@ def test_covariance_consistency_scores_a_right_and_an_over_confident_covariance(
     cov_nan[:10] = np.nan
     assert covariance_consistency(err, cov_nan)["count"] == n - 10
     assert covariance_consistency(err[:0], cov[:0]) == {"count": 0}
+
+
+def test_write_json_names_the_machine_and_library_versions(tmp_path) -> None:
+    """A flight's figures depend on the CPU and the numerics libraries' builds (README, Benchmarks): every
+    benchmark JSON says which ones made it, and the versions are the installed ones."""
+    import json
+    from importlib import metadata
+
+    from bench.common import write_json
+
+    out = tmp_path / "r.json"
+    write_json(out, {"x": float("nan")})
+    doc = json.loads(out.read_text())
+    m = doc["machine"]
+    assert doc["x"] is None
+    assert m["packages"]["opencv-python-headless"] == metadata.version("opencv-python-headless")
+    assert m["packages"]["gtsam"] == metadata.version("gtsam")
+    assert m["packages"]["numpy"] == m["numpy"]
+    assert isinstance(m["cpu_model"], str) and m["cpu_model"]
+    assert m["numpy_simd_found"] is None or isinstance(m["numpy_simd_found"], list)
