@@ -31,6 +31,7 @@ from scipy.stats import chi2
 from companion.constants import GRAVITY_MPS2
 from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
 from companion.io.frames import encode_image
+from companion.io.mavlink import urt21_to_covariance
 from sim_bridge.autopilot_link import SimAutopilotLink, SimAutopilotOptions, SimNoise
 from sim_bridge.trajectory import Trajectory, circular, forward, scanning
 
@@ -361,9 +362,8 @@ CHI2_2DOF_95 = float(chi2.ppf(0.95, 2))  # an error inside the 95 % ellipse of i
 
 
 def _cov_ne(urt21: Sequence[float]) -> np.ndarray:
-    """The north-east block of a MAVLink 21-element pose covariance (row-major upper triangle)."""
-    c = np.asarray(urt21, float)
-    return np.array([[c[0], c[1]], [c[1], c[6]]])
+    """The north-east block of a MAVLink 21-element pose covariance."""
+    return urt21_to_covariance(urt21)[:2, :2]
 
 
 def covariance_consistency(err_ne: np.ndarray, cov_ne: np.ndarray) -> dict[str, float | int]:
