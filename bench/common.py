@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_info
 
 
 def parser(name: str, description: str) -> argparse.ArgumentParser:
@@ -40,7 +41,6 @@ def machine() -> dict[str, Any]:
     """What the numbers were measured on. The flights' figures are chaotic in the last bits of floating
     point: another CPU (its SIMD kernels in numpy, OpenBLAS, OpenCV) or another build of these libraries
     moves a scene's APE by a few per cent (README), so the JSON says which ones made them."""
-    from threadpoolctl import threadpool_info
 
     def version(name: str) -> str | None:
         try:
