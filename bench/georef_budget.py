@@ -19,6 +19,18 @@ reference does not model but that is correlated with the relief (topography-corr
 roughness below the DEM's cell) is in quadrature with the shading and shifts the correlation peak along the
 sun azimuth, so the bias there is the signature to look for. All errors in frame pixels (true GSD), over the
 fixes the matcher accepted; ``success`` is the fraction of ALL frames with an accepted fix under 1 px.
+
+Beside each variant's measured errors, an information bound on the same frames (``shift_fisher``): the
+frame rectified at its TRUE pose, the reference fitted to it there with the matcher's own model
+(``illumination.fit_reference``: five DEM-derived images, real coefficients per frequency ring), and the
+Cramer-Rao bound of the shift from their coherence per (ring, orientation) cell over every frequency the
+DEM carries (Knapp & Carter's time-delay bound, in two dimensions). ``bound_px``: the median over the frames
+of the bound's larger standard deviation; ``bound_success``: the mean over the frames of the chance that an
+unbiased matcher meeting the bound lands within 1 px. It is optimistic on purpose (the oracle fit at the
+truth; the window's edges counted as signal: on synthetic pairs with a known template it comes out 0.75-0.85x
+the exact bound, ``tests/test_georef_bound.py``), so a goal it puts out of reach is out of reach of any
+unbiased matcher of this model, and the gap between it and the measured error is what a better matcher of
+the same model could still win.
 """
 
 from __future__ import annotations
@@ -30,11 +42,14 @@ import numpy as np
 
 from bench.common import parser, table, write_json
 from bench.georef import AGL_M, DEGRADATION, INTR, PRESUMED_SUN, sample_frames
+from companion.georef import illumination, phase
 from companion.georef.georef import GeoReferencer, GeorefOptions
 from sim_bridge.render import VisibleRenderer
 from sim_bridge.terrain import SCENE_IDS, degrade_dem, make_scene
 
 UNIFORM_ALBEDO = 0.25  # the scenes' base Mars albedo
+BOUND_RINGS, BOUND_SECTORS = 8, 8  # coherence cells of the information bound
+BOUND_F_LO_CYCLES = 2.0  # lowest frequency of the bound: cycles across the grid
 
 VARIANTS: dict[str, dict[str, bool]] = {
     # name: (true DEM, coarsen only, uniform albedo, known sun)
@@ -45,6 +60,66 @@ VARIANTS: dict[str, dict[str, bool]] = {
     "coarse_dem_uniform_albedo": dict(true_dem=False, coarse_only=True, uniform_albedo=True, known_sun=False),
     "ideal": dict(true_dem=True, coarse_only=False, uniform_albedo=True, known_sun=True),
 }
+
+
+def shift_fisher(
+    f_frame: np.ndarray, f_ref: np.ndarray, bins: illumination.Bins, window: np.ndarray
+) -> np.ndarray:
+    """(2, 2) Fisher information (per squared grid cell, (col, row) axes) of the shift between a frame and a
+    reference, from their half-plane spectra ALIGNED at the true shift and the window both were taken with.
+
+    Knapp & Carter (1976): a frequency bin whose two spectra have magnitude-squared coherence g carries
+    (2 pi f)^2 g / (1 - g) of information on the delay; summed over the full plane (Hermitian multiplicity
+    of the half-plane bins). The coherence is the real one (the in-phase part: what is in quadrature at the
+    truth is bias or noise to a matcher) pooled per (ring, sector) cell. The window makes neighbouring bins
+    dependent: the sum is scaled by the effective sample fraction (sum w^2)^2 / (N sum w^4)."""
+    a = f_frame.ravel()[bins.index]
+    r = f_ref.ravel()[bins.index]
+    cell = bins.ring * bins.n_sectors + bins.sector
+    n_cells = bins.n_rings * bins.n_sectors
+    s_cross = np.bincount(cell, (a * np.conj(r)).real * bins.mult, n_cells)
+    s_a = np.bincount(cell, np.abs(a) ** 2 * bins.mult, n_cells)
+    s_r = np.bincount(cell, np.abs(r) ** 2 * bins.mult, n_cells)
+    rho = np.clip(s_cross / np.sqrt(s_a * s_r + 1e-30), 0.0, 0.999)
+    g = (rho * rho / (1.0 - rho * rho))[cell]
+    w2 = np.asarray(window, float) ** 2
+    k_eff = w2.sum() ** 2 / (w2.size * (w2 * w2).sum())
+    f = np.stack([bins.fx, bins.fy])
+    return k_eff * (2.0 * np.pi) ** 2 * (f * (bins.mult * g)) @ f.T
+
+
+def disc_probability(cov: np.ndarray, radius: float = 1.0, n_angles: int = 256) -> float:
+    """P(|e| < radius) for e ~ N(0, cov) in 2-D: along each direction u the radial integral is closed-form,
+    (1 - exp(-q R^2 / 2)) / q with q = u^T cov^-1 u, leaving one smooth integral over the angle."""
+    cov = np.asarray(cov, float)
+    det = float(np.linalg.det(cov))
+    if not det > 0.0:
+        return 1.0 if np.all(np.abs(cov) < 1e-12) else float("nan")
+    th = (np.arange(n_angles) + 0.5) * (2.0 * np.pi / n_angles)
+    u = np.stack([np.cos(th), np.sin(th)])
+    q = np.einsum("in,ij,jn->n", u, np.linalg.inv(cov), u)
+    radial = -np.expm1(-0.5 * q * radius * radius) / q
+    return float(np.clip(radial.mean() / np.sqrt(det), 0.0, 1.0))
+
+
+def frame_bound(geo: GeoReferencer, fr: dict[str, Any]) -> np.ndarray | None:
+    """(2, 2) Cramer-Rao covariance (frame px^2) of a frame's fix: the frame rectified at its true pose as
+    ``locate`` would, the reference fitted to it there, every frequency up to the DEM's Nyquist. None when
+    the frame cannot be rectified."""
+    img = geo.preprocess(geo.work_image(fr["image"]))
+    ne = np.asarray(fr["p"], float)[:2]
+    ground = geo.ground_height(ne[0], ne[1])
+    pair = geo.rectify(img, fr["R"], ne, ground + fr["agl"], fr["agl"])
+    if isinstance(pair, str):
+        return None
+    n = pair.grid.size
+    f_hi = min(0.5 * pair.grid.gsd_m / geo.dem.cell_m, 0.49)
+    bins = illumination.Bins.make((n, n), BOUND_F_LO_CYCLES / n, f_hi, BOUND_RINGS, BOUND_SECTORS)
+    f_img = phase.spectrum(pair.frame, pair.weight)
+    f_bases = [phase.spectrum(b, pair.weight) for b in geo.ref.sample_bases(pair.grid, pair.reference)]
+    ref = illumination.scatter(illumination.fit_reference(f_img, f_bases, bins, np.zeros(2)), bins, (n, n))
+    J = shift_fisher(f_img, ref, bins, pair.weight)
+    return np.linalg.inv(J) / geo.opt.work_scale**2
 
 
 def run_variant(
@@ -75,8 +150,12 @@ def run_variant(
     az = scene.sun.azimuth_rad
     along = np.array([np.cos(az), np.sin(az)])  # (north, east) towards the sun
     across = np.array([-np.sin(az), np.cos(az)])
-    errs, ms = [], []
+    errs, ms, bound_sd, bound_succ = [], [], [], []
     for fr in frames:
+        cov = frame_bound(geo, fr)
+        if cov is not None:
+            bound_sd.append(float(np.sqrt(np.linalg.eigvalsh(cov)[-1])))
+            bound_succ.append(disc_probability(cov))
         fix = geo.locate(fr["image"], fr["R"], fr["pred"], fr["agl"])
         ms.append(fix.ms)
         if fix.ok:
@@ -95,10 +174,13 @@ def run_variant(
         mean_px=float(d.mean()) if len(e) else nan,
         success_rate=float((d < 1.0).sum() / n),
         ms_per_frame=float(np.mean(ms)),
+        bound_px=float(np.median(bound_sd)) if bound_sd else nan,
+        bound_success=float(np.mean(bound_succ)) if bound_succ else nan,
     )
 
 
 HEADERS = ["variant", "fixes", "bias_along", "bias_across", "std_along", "std_across", "mean_px", "success"]
+HEADERS += ["bound_px", "bound_success"]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -134,6 +216,8 @@ def main(argv: list[str] | None = None) -> int:
                 r["std_across_sun_px"],
                 r["mean_px"],
                 r["success_rate"],
+                r["bound_px"],
+                r["bound_success"],
             ]
             for name, r in results[sid].items()
         ]
