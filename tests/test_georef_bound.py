@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.georef_budget import disc_probability, shift_fisher
+from bench.georef_budget import bound_stats, disc_probability, shift_fisher
 from companion.georef import illumination, phase
 
 N = 128
@@ -77,3 +77,15 @@ def test_shift_bound_against_the_known_template_bound_and_a_real_matcher() -> No
     assert 0.6 <= ratio <= 1.05, ratio
     rms = float(np.sqrt(np.mean(np.square(errors))))
     assert rms >= float(np.median(bounds)), (rms, np.median(bounds))
+
+
+def test_bound_stats_takes_the_floor_off_and_counts_a_frame_without_information() -> None:
+    j = np.diag([100.0, 25.0])  # sigmas 0.1 and 0.2 px
+    none = bound_stats([(j, np.zeros((2, 2)))])
+    assert none["bound_px"] == pytest.approx(0.2) and none["bound_net_px"] == pytest.approx(0.2)
+    assert none["bound_success"] == pytest.approx(none["bound_net_success"])
+    half = bound_stats([(j, np.diag([75.0, 0.0]))])
+    assert half["bound_net_px"] == pytest.approx(0.2) and half["bound_floor_px"] == float("inf")
+    lost = bound_stats([(j, np.diag([100.0, 30.0])), (j, np.zeros((2, 2)))])
+    assert lost["bound_net_px"] == float("inf")  # the median of two frames, one left without information
+    assert lost["bound_net_success"] == pytest.approx(0.5 * none["bound_success"])
