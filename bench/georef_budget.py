@@ -77,15 +77,8 @@ def shift_fisher(
     of the half-plane bins). The coherence is the real one (the in-phase part: what is in quadrature at the
     truth is bias or noise to a matcher) pooled per (ring, sector) cell. The window makes neighbouring bins
     dependent: the sum is scaled by the effective sample fraction (sum w^2)^2 / (N sum w^4)."""
-    a = f_frame.ravel()[bins.index]
-    r = f_ref.ravel()[bins.index]
-    cell = bins.ring * bins.n_sectors + bins.sector
-    n_cells = bins.n_rings * bins.n_sectors
-    s_cross = np.bincount(cell, (a * np.conj(r)).real * bins.mult, n_cells)
-    s_a = np.bincount(cell, np.abs(a) ** 2 * bins.mult, n_cells)
-    s_r = np.bincount(cell, np.abs(r) ** 2 * bins.mult, n_cells)
-    rho = np.clip(s_cross / np.sqrt(s_a * s_r + 1e-30), 0.0, 0.999)
-    g = (rho * rho / (1.0 - rho * rho))[cell]
+    # the pooled coherence per cell, rho^2 / (1 - rho^2) per bin: the matcher's own weights without a floor
+    g = illumination.coherence_weight(f_frame, f_ref.ravel()[bins.index], bins, np.zeros(2), floor=0.0)
     w2 = np.asarray(window, float) ** 2
     k_eff = w2.sum() ** 2 / (w2.size * (w2 * w2).sum())
     f = np.stack([bins.fx, bins.fy])
