@@ -126,6 +126,9 @@ class GeorefEstimatorConfig(_Strict):
 class TerrainLbaConfig(_Strict):
     window_size: Annotated[int, Field(ge=2, le=100)] = 15
     w_geo: Annotated[float, Field(ge=0)] = 10.0
+    # the fixes' sigma (1 m / sqrt(w_geo) to start) grows to the scatter the fixes show about the visual
+    # odometry, where the terrain matches worse (README); false: fixed by w_geo
+    fix_sigma_adapt: bool = True
     min_frames_between_kf: Annotated[int, Field(ge=1)] = 20
     min_features_kf: Annotated[int, Field(ge=1)] = 50
     max_tracked_ratio_kf: Annotated[float, Field(gt=0, le=1)] = 0.9

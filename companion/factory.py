@@ -69,7 +69,11 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
         lba_opt = replace(
             lba_opt,
             georef=replace(lba_opt.georef, joint_shift=t.joint_shift, rs_sweep_deg=t.heading_search_deg),
-            backend=replace(lba_opt.backend, heading_from_matcher=t.heading_from_matcher),
+            backend=replace(
+                lba_opt.backend,
+                heading_from_matcher=t.heading_from_matcher,
+                geo_sigma_adapt=t.fix_sigma_adapt,
+            ),
         )
         return TerrainLbaEstimator(
             lba_opt,

@@ -119,6 +119,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
     changed = {
         "window_size": 12,
         "w_geo": 5.0,
+        "fix_sigma_adapt": False,
         "min_frames_between_kf": 15,
         "min_features_kf": 60,
         "max_tracked_ratio_kf": 0.8,
@@ -149,6 +150,8 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
                 assert opt.georef.joint_shift is value
             elif key == "heading_from_matcher":
                 assert opt.backend.heading_from_matcher is value
+            elif key == "fix_sigma_adapt":
+                assert opt.backend.geo_sigma_adapt is value
             elif key == "heading_search_deg":
                 assert opt.georef.rs_sweep_deg == value
             elif key == "compass_sigma_deg":

@@ -20,7 +20,14 @@ from companion.georef.dem import Dem
 from companion.lba.align import align_yaw_translation
 from companion.lba.backend import Backend, BackendJob, BackendOptions, ground_below
 from companion.lba.gauge import gauge_covariance
-from companion.lba.window import LbaOptions, WindowProblem, body_covariance, geo_factor, solve_window
+from companion.lba.window import (
+    LbaOptions,
+    WindowProblem,
+    body_covariance,
+    geo_factor,
+    geo_redundancy,
+    solve_window,
+)
 from companion.vo.geometry import reproject
 from companion.vo.odometry import WindowSnapshot
 
@@ -537,7 +544,8 @@ def test_reported_covariance_grows_when_the_fixes_scatter_beyond_their_sigma(fix
         return _Fix(fixes[current["k"]])
 
     for vf in (False, True):
-        be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0), variance_factor=vf), locate)
+        opt = BackendOptions(lba=LbaOptions(w_geo=10.0), variance_factor=vf, geo_sigma_adapt=False)
+        be = Backend(opt, locate)
         for k in range(2, len(T)):
             current["k"] = k
             res = be.process(_first_kfs_job(snap_all, T, k))
@@ -550,3 +558,50 @@ def test_reported_covariance_grows_when_the_fixes_scatter_beyond_their_sigma(fix
         assert ratio[0, 0] == 1.0
     else:
         assert 3.0 < ratio[0, 0] < 30.0  # about (1.0 / 0.32)^2 less what the adjustment fits
+
+
+@pytest.mark.parametrize("fix_noise_m", [0.1, 1.0])
+def test_geo_redundancy_estimates_how_far_the_fixes_scatter_beyond_their_sigma(fix_noise_m):
+    """Helmert's variance component of the geo term: the fixes' whitened squared residuals over their
+    redundancy estimate (true fix variance) / (variance the adjustment gave them); here sigma 0.32 m
+    (geo_cov 1 m^2 / w_G 10), fixes drawn at 0.1 and 1.0 m: ratios 0.1 and 10. Pooled over six windows
+    (about 100 fixes) the estimate is good to about 15 %."""
+    q_sum, red_sum = 0.0, 0.0
+    for seed in range(6):
+        T, P, ok, ol, opx, rng = _scene(seed)
+        prob = _problem(T, P, ok, ol, opx, rng, geo_sigma=fix_noise_m, perturb=False)
+        sol = solve_window(prob, LbaOptions(w_geo=10.0))
+        q, red = geo_redundancy(prob, sol, 10.0)
+        assert 0.0 < red <= 2.0 * (len(T) - 2)
+        q_sum, red_sum = q_sum + q, red_sum + red
+    expected = fix_noise_m**2 / 0.1
+    assert 0.6 * expected < q_sum / red_sum < 1.6 * expected
+
+
+@pytest.mark.parametrize("fix_noise_m", [0.05, 1.0])
+def test_backend_learns_the_fixes_sigma_from_their_scatter(fix_noise_m):
+    """With ``geo_sigma_adapt`` the sigma the adjustment gives the fixes (reported as ``fix_sigma_m``) grows
+    from sigma0 / sqrt(w_G) = 0.32 m towards what they scatter when that is more (1 m fixes), and stays when
+    it is less (5 cm fixes: the range's floor is 1, the fixes are never trusted more than w_G says); without
+    it, it stays."""
+    T, P, ok, ol, opx, rng = _scene(5, n_kf=30)
+    fixes = {i: T[i, :3, 3] + rng.normal(0, fix_noise_m, 3) for i in range(len(T))}
+    snap_all = _snapshot(T, P, ok, ol, opx)
+    current = {"k": 0}
+
+    def locate(image, R, p, alt, solve_rotation_scale):
+        return _Fix(fixes[current["k"]])
+
+    sigma = {}
+    for adapt in (False, True):
+        opt = BackendOptions(lba=LbaOptions(w_geo=10.0), geo_sigma_adapt=adapt, geo_gate_chi2=1e6)
+        be = Backend(opt, locate)
+        for k in range(2, len(T)):
+            current["k"] = k
+            res = be.process(_first_kfs_job(snap_all, T, k))
+        sigma[adapt] = res.geo["fix_sigma_m"]
+    assert sigma[False] == pytest.approx(1.0 / np.sqrt(10.0))
+    if fix_noise_m > 0.3:
+        assert 0.6 < sigma[True] < 1.6
+    else:
+        assert sigma[True] == sigma[False]

@@ -70,13 +70,15 @@ class GeoFixRecord:
     back-end's outcome ("accepted", "rejected", "pending", "aligned", ...). p_fix_world: (3,) body position
     by the fix (NED, eq. 18 at the key frame's VO attitude). ground_fix_world: (3,) the ground point the
     fix locates on the optical axis at the altimeter's range (what the adjustment holds; NaN without a
-    range)."""
+    range). fix_sigma_m: the horizontal sigma the adjustment gave fixes after this key frame (learnt from
+    their scatter, ``BackendOptions.geo_sigma_adapt``; NaN when not reported)."""
 
     stamp_us: int
     status: str
     quality: float
     p_fix_world: np.ndarray
     ground_fix_world: np.ndarray
+    fix_sigma_m: float = float("nan")
 
     @staticmethod
     def of(stamp_us: int, geo: dict) -> GeoFixRecord:
@@ -86,6 +88,7 @@ class GeoFixRecord:
             float(geo.get("quality", float("nan"))),
             np.asarray(geo["p_fix_world"], float),
             np.asarray(geo.get("ground_fix_world", [np.nan] * 3), float),
+            float(geo.get("fix_sigma_m", float("nan"))),
         )
 
 

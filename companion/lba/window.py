@@ -34,6 +34,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
+from companion.ekf.so3 import skew
 from companion.geometry import rpy_from_rot
 
 _DOWN_WORLD = np.array([0.0, 0.0, 1.0])  # NED: gravity points along +z
@@ -265,6 +266,34 @@ def solve_window(problem: WindowProblem, options: LbaOptions = LbaOptions()) -> 
             for i in range(M):
                 cov[i] = marg.marginalCovariance(X(i))
     return WindowSolution(T, P, cov, inl, geo_w, float(err0), float(graph.error(result)), int(iters), True)
+
+
+def geo_redundancy(
+    problem: WindowProblem, sol: WindowSolution, w_geo: float, q_cap: float = np.inf
+) -> tuple[float, float]:
+    """The horizontal geo-fixes' share of the window's a-posteriori variance factor (Helmert's variance
+    component estimate): (sum of the fixes' whitened squared horizontal residuals, sum of their redundancy
+    numbers). A fix's redundancy is 2 - tr(S^-1 P): S its horizontal covariance in the adjustment (geo_cov /
+    w_G), P the posterior covariance of the point it locates (the key frame's marginal through the lever
+    arm); a fix the adjustment simply follows has redundancy ~0, one the rest of the window overrules ~2.
+    The ratio of the two sums estimates by how much S should be scaled for the fixes to scatter as their
+    covariance says. Each whitened squared residual is capped at ``q_cap`` (a gross outlier the robust
+    kernel already discounts must not inflate the estimate). Key frames without a fix or a finite marginal
+    are skipped; (0, 0) when none."""
+    q_sum, red_sum = 0.0, 0.0
+    for i in np.flatnonzero(np.isfinite(sol.geo_whitened)):
+        C = sol.cov[i]
+        if not np.all(np.isfinite(C)):
+            continue
+        R, lever = sol.T_world_cam[i, :3, :3], problem.geo_lever_cam[i]
+        r = (R @ lever + sol.T_world_cam[i, :3, 3] - problem.geo_p_world[i])[:2]
+        # the point R lever + t under the Pose3 tangent (rotation, translation), both in the camera frame
+        J = R @ np.hstack([-skew(lever), np.eye(3)])
+        P = (J @ C @ J.T)[:2, :2]
+        S_inv = np.linalg.inv(problem.geo_cov[i][:2, :2] / w_geo)
+        q_sum += min(float(r @ S_inv @ r), q_cap)
+        red_sum += 2.0 - float(np.trace(S_inv @ P))
+    return q_sum, red_sum
 
 
 def body_covariance(
