@@ -332,7 +332,9 @@ def fix_errors(
     surface. ``ground_m``: horizontal error of the ground point the fix locates on the optical axis (the
     matcher's own error: what the adjustment holds); ``body_m``: horizontal error of the body position the
     fix gives at the key frame's estimated attitude (adds height x that attitude's tilt error). Means over
-    the fixes the adjustment used, ``bias_ne_m`` the mean ground error vector (north, east)."""
+    the fixes the adjustment used, ``bias_ne_m`` the mean ground error vector (north, east);
+    ``sigma_m_median`` / ``sigma_m_last``: the horizontal sigma the adjustment gave the fixes (learnt from
+    their scatter, ``BackendOptions.geo_sigma_adapt``) over the flight and at its end (NaN when none was reported)."""
     used = [r for r in records if r.status in USED_FIX]
     if not used:
         return {"n_used": 0, "n_reported": len(records)}
@@ -344,6 +346,8 @@ def fix_errors(
     d_g = g_fix[:, :2] - g_true[:, :2]
     d_b = p_fix[:, :2] - p_body[k, :2]
     ok = np.isfinite(d_g).all(axis=1)
+    sig = np.array([r.fix_sigma_m for r in records], float)
+    sig = sig[np.isfinite(sig)]
     return {
         "n_used": len(used),
         "n_reported": len(records),
@@ -351,6 +355,8 @@ def fix_errors(
         "body_m": float(np.linalg.norm(d_b, axis=1).mean()),
         "bias_ne_m": d_g[ok].mean(axis=0).tolist() if ok.any() else [float("nan")] * 2,
         "quality_mean": float(np.mean([r.quality for r in used])),
+        "sigma_m_median": float(np.median(sig)) if len(sig) else float("nan"),
+        "sigma_m_last": float(sig[-1]) if len(sig) else float("nan"),
     }
 
 
@@ -359,7 +365,16 @@ def _public(res: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in res.items() if k not in ("errors_m", "t_s", "distance_at_estimate_m")}
 
 
-FIX_HEAD = ["scene", "fixes used", "ground err/m", "bias N/m", "bias E/m", "body err/m", "APE horiz/m"]
+FIX_HEAD = [
+    "scene",
+    "fixes used",
+    "ground err/m",
+    "bias N/m",
+    "bias E/m",
+    "body err/m",
+    "fix sigma/m",
+    "APE horiz/m",
+]
 FIX_TITLE = "terrain_lba's key-frame geo-fixes against the truth (horizontal; means over the fixes used)"
 
 
@@ -374,6 +389,7 @@ def _fix_row(scene: str, r: dict[str, Any]) -> list[Any]:
         bias[0],
         bias[1],
         g.get("body_m", nan),
+        g.get("sigma_m_median", nan),
         r.get("horizontal_mean", nan),
     ]
 

@@ -28,7 +28,13 @@ def test_ground_and_body_errors_and_bias_from_known_offsets() -> None:
         recs.append(
             GeoFixRecord.of(
                 int(round(times[k] * 1e6)),
-                {"status": "accepted", "quality": 0.5, "p_fix_world": b, "ground_fix_world": g},
+                {
+                    "status": "accepted",
+                    "quality": 0.5,
+                    "p_fix_world": b,
+                    "ground_fix_world": g,
+                    "fix_sigma_m": 0.3 + 0.1 * (k % 2),
+                },
             )
         )
     # a rejected fix far off is not counted
@@ -44,6 +50,8 @@ def test_ground_and_body_errors_and_bias_from_known_offsets() -> None:
     assert out["bias_ne_m"] == pytest.approx([0.1, 0.0], abs=1e-9)
     assert out["body_m"] == pytest.approx(np.hypot(0.1, 0.3), abs=1e-9)
     assert out["quality_mean"] == pytest.approx(0.5)
+    assert out["sigma_m_median"] == pytest.approx(0.35)  # over the fixes that reported one
+    assert out["sigma_m_last"] == pytest.approx(0.4)
 
 
 def test_no_used_fix_reports_counts_only() -> None:
