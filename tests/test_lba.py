@@ -605,3 +605,28 @@ def test_backend_learns_the_fixes_sigma_from_their_scatter(fix_noise_m):
         assert 0.6 < sigma[True] < 1.6
     else:
         assert sigma[True] == sigma[False]
+
+
+def test_reported_variance_factor_stays_against_the_nominal_sigma_when_the_sigma_is_learnt():
+    """With the fixes' sigma learnt (the default), 1 m fixes raise it to about 1 m, so against the learnt
+    sigma the variance factor would be ~1; the reported covariance still takes it against the nominal 0.32 m
+    (the fixes' errors are correlated in time), and the adjustment is the same either way."""
+    T, P, ok, ol, opx, rng = _scene(5)
+    fixes = {i: T[i, :3, 3] + rng.normal(0, 1.0, 3) for i in range(len(T))}
+    snap_all = _snapshot(T, P, ok, ol, opx)
+    current = {"k": 0}
+
+    def locate(image, R, p, alt, solve_rotation_scale):
+        return _Fix(fixes[current["k"]])
+
+    out = {}
+    for vf in (False, True):
+        be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0), variance_factor=vf), locate)
+        assert be.opt.geo_sigma_adapt
+        for k in range(2, len(T)):
+            current["k"] = k
+            res = be.process(_first_kfs_job(snap_all, T, k))
+        out[vf] = res
+    assert out[True].geo["fix_sigma_m"] > 0.6  # learnt well above the nominal 0.32 m
+    np.testing.assert_array_equal(out[True].T_world_cam, out[False].T_world_cam)
+    assert (out[True].cov_newest / out[False].cov_newest)[0, 0] > 3.0
