@@ -529,27 +529,38 @@ def test_gauge_covariance_is_the_start_and_the_heading_carried_along_the_lever()
     assert np.sqrt(np.trace(C_free[:2, :2])) <= 50.0 + 1e-9
 
 
-@pytest.mark.parametrize("fix_noise_m", [0.05, 1.0])
-def test_reported_covariance_grows_when_the_fixes_scatter_beyond_their_sigma(fix_noise_m):
-    """The a-posteriori variance factor of the window's geo term scales the covariance reported for the
-    newest key frame when the fixes scatter more than their sigma (sigma0 / sqrt(w_G) = 0.32 m here), and
-    leaves it when they scatter less; the adjustment itself is the same either way."""
-    T, P, ok, ol, opx, rng = _scene(5)
+def _fly_backend_over_noisy_fixes(options: list[BackendOptions], fix_noise_m: float, n_kf: int = 12) -> list:
+    """The back-end over key frames 2.. of scene 5, each with a fix drawn ``fix_noise_m`` around its true
+    position, once per entry of ``options``: the last result of each."""
+    T, P, ok, ol, opx, rng = _scene(5, n_kf=n_kf)
     fixes = {i: T[i, :3, 3] + rng.normal(0, fix_noise_m, 3) for i in range(len(T))}
     snap_all = _snapshot(T, P, ok, ol, opx)
-    out = {}
     current = {"k": 0}
 
     def locate(image, R, p, alt, solve_rotation_scale):
         return _Fix(fixes[current["k"]])
 
-    for vf in (False, True):
-        opt = BackendOptions(lba=LbaOptions(w_geo=10.0), variance_factor=vf, geo_sigma_adapt=False)
+    out = []
+    for opt in options:
         be = Backend(opt, locate)
         for k in range(2, len(T)):
             current["k"] = k
             res = be.process(_first_kfs_job(snap_all, T, k))
-        out[vf] = res
+        out.append(res)
+    return out
+
+
+@pytest.mark.parametrize("fix_noise_m", [0.05, 1.0])
+def test_reported_covariance_grows_when_the_fixes_scatter_beyond_their_sigma(fix_noise_m):
+    """The a-posteriori variance factor of the window's geo term scales the covariance reported for the
+    newest key frame when the fixes scatter more than their sigma (sigma0 / sqrt(w_G) = 0.32 m here), and
+    leaves it when they scatter less; the adjustment itself is the same either way."""
+    opts = [
+        BackendOptions(lba=LbaOptions(w_geo=10.0), variance_factor=vf, geo_sigma_adapt=False)
+        for vf in (False, True)
+    ]
+    off, on = _fly_backend_over_noisy_fixes(opts, fix_noise_m)
+    out = {False: off, True: on}
     assert out[True].counters["fix_accepted"] >= 6
     np.testing.assert_array_equal(out[True].T_world_cam, out[False].T_world_cam)
     ratio = out[True].cov_newest / out[False].cov_newest
@@ -584,22 +595,12 @@ def test_backend_learns_the_fixes_sigma_from_their_scatter(fix_noise_m):
     from sigma0 / sqrt(w_G) = 0.32 m towards what they scatter when that is more (1 m fixes), and stays when
     it is less (5 cm fixes: the range's floor is 1, the fixes are never trusted more than w_G says); without
     it, it stays."""
-    T, P, ok, ol, opx, rng = _scene(5, n_kf=30)
-    fixes = {i: T[i, :3, 3] + rng.normal(0, fix_noise_m, 3) for i in range(len(T))}
-    snap_all = _snapshot(T, P, ok, ol, opx)
-    current = {"k": 0}
-
-    def locate(image, R, p, alt, solve_rotation_scale):
-        return _Fix(fixes[current["k"]])
-
-    sigma = {}
-    for adapt in (False, True):
-        opt = BackendOptions(lba=LbaOptions(w_geo=10.0), geo_sigma_adapt=adapt, geo_gate_chi2=1e6)
-        be = Backend(opt, locate)
-        for k in range(2, len(T)):
-            current["k"] = k
-            res = be.process(_first_kfs_job(snap_all, T, k))
-        sigma[adapt] = res.geo["fix_sigma_m"]
+    opts = [
+        BackendOptions(lba=LbaOptions(w_geo=10.0), geo_sigma_adapt=adapt, geo_gate_chi2=1e6)
+        for adapt in (False, True)
+    ]
+    off, on = _fly_backend_over_noisy_fixes(opts, fix_noise_m, n_kf=30)
+    sigma = {False: off.geo["fix_sigma_m"], True: on.geo["fix_sigma_m"]}
     assert sigma[False] == pytest.approx(1.0 / np.sqrt(10.0))
     if fix_noise_m > 0.3:
         assert 0.6 < sigma[True] < 1.6
@@ -611,22 +612,10 @@ def test_reported_variance_factor_stays_against_the_nominal_sigma_when_the_sigma
     """With the fixes' sigma learnt (the default), 1 m fixes raise it to about 1 m, so against the learnt
     sigma the variance factor would be ~1; the reported covariance still takes it against the nominal 0.32 m
     (the fixes' errors are correlated in time), and the adjustment is the same either way."""
-    T, P, ok, ol, opx, rng = _scene(5)
-    fixes = {i: T[i, :3, 3] + rng.normal(0, 1.0, 3) for i in range(len(T))}
-    snap_all = _snapshot(T, P, ok, ol, opx)
-    current = {"k": 0}
-
-    def locate(image, R, p, alt, solve_rotation_scale):
-        return _Fix(fixes[current["k"]])
-
-    out = {}
-    for vf in (False, True):
-        be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0), variance_factor=vf), locate)
-        assert be.opt.geo_sigma_adapt
-        for k in range(2, len(T)):
-            current["k"] = k
-            res = be.process(_first_kfs_job(snap_all, T, k))
-        out[vf] = res
+    opts = [BackendOptions(lba=LbaOptions(w_geo=10.0), variance_factor=vf) for vf in (False, True)]
+    assert all(o.geo_sigma_adapt for o in opts)
+    off, on = _fly_backend_over_noisy_fixes(opts, 1.0)
+    out = {False: off, True: on}
     assert out[True].geo["fix_sigma_m"] > 0.6  # learnt well above the nominal 0.32 m
     np.testing.assert_array_equal(out[True].T_world_cam, out[False].T_world_cam)
     assert (out[True].cov_newest / out[False].cov_newest)[0, 0] > 3.0
