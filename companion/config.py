@@ -133,6 +133,12 @@ class TerrainLbaConfig(_Strict):
     min_features_kf: Annotated[int, Field(ge=1)] = 50
     max_tracked_ratio_kf: Annotated[float, Field(gt=0, le=1)] = 0.9
     joint_shift: bool = True  # key-frame fixes: shift estimated jointly with the fitted reference (README)
+    # the scales (m) at which the matcher models reflectance tied to the relief (dust in hollows): its
+    # fitted reference has a local-relief image, h - blur(h), per scale. Keep them several DEM cells wide
+    relief_scales_m: Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=1, max_length=4)] = [
+        20.0,
+        5.0,
+    ]
     # at start-up, turn the map by the heading error the matcher recovers from the terrain (README); false:
     # keep the compass heading until the fixes have spread 25 m
     heading_from_matcher: bool = True

@@ -68,7 +68,12 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
         )
         lba_opt = replace(
             lba_opt,
-            georef=replace(lba_opt.georef, joint_shift=t.joint_shift, rs_sweep_deg=t.heading_search_deg),
+            georef=replace(
+                lba_opt.georef,
+                joint_shift=t.joint_shift,
+                rs_sweep_deg=t.heading_search_deg,
+                relief_scales_m=tuple(t.relief_scales_m),
+            ),
             backend=replace(
                 lba_opt.backend,
                 heading_from_matcher=t.heading_from_matcher,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -116,7 +117,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
     from companion.georef.dem import Dem
     from companion.io.dem_store import save_dem_npz
 
-    changed = {
+    changed: dict[str, Any] = {
         "window_size": 12,
         "w_geo": 5.0,
         "fix_sigma_adapt": False,
@@ -124,6 +125,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         "min_features_kf": 60,
         "max_tracked_ratio_kf": 0.8,
         "joint_shift": False,
+        "relief_scales_m": [30.0],
         "heading_from_matcher": False,
         "heading_search_deg": 12.0,
         "compass_sigma_deg": 5.0,
@@ -148,6 +150,8 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         for key, value in changed.items():
             if key == "joint_shift":
                 assert opt.georef.joint_shift is value
+            elif key == "relief_scales_m":
+                assert opt.georef.relief_scales_m == (30.0,)
             elif key == "heading_from_matcher":
                 assert opt.backend.heading_from_matcher is value
             elif key == "fix_sigma_adapt":

@@ -274,48 +274,93 @@ def test_bad_input(geo_fine: GeoReferencer, image, R, p) -> None:
     _assert_no_fix(geo_fine.locate(image, R, p, AGL_M), G.REASON_BAD_INPUT)
 
 
-def test_joint_shift_is_not_pulled_by_a_height_like_term() -> None:
-    # A periodic terrain; the frame is its shading plus a reflectance tied to the relief (darker high ground),
-    # shifted by a known sub-pixel amount. Correlating against the shading alone puts the peak off along the
-    # sun; minimising the fitted residual over the shift (the even term is one of the bases) finds the shift.
-    from companion.georef import illumination, phase
-    from companion.georef.shading import slopes
+class _PeriodicTerrain:
+    """A periodic random terrain (1 m cells, ``n`` x ``n``, 15 m std) under a sun in the north, with the
+    matcher's basis images computed with wrapped derivatives, and frames moved by an exact sub-pixel shift."""
 
-    n = 128
-    rng = np.random.default_rng(5)
-    fy = np.fft.fftfreq(n)[:, None]
-    fx = np.fft.fftfreq(n)[None, :]
-    f = np.hypot(fx, fy)
-    spec = np.fft.fft2(rng.standard_normal((n, n))) * np.exp(-((f / 0.04) ** 2))
-    h = np.fft.ifft2(spec).real
-    h = (15.0 * h / h.std()).astype(np.float32)  # metres, 1 m cells, periodic
-    sun = Sun.from_degrees(10.0, 0.0, 45.0)
+    def __init__(self, n: int, corner_cycles_per_m: float, seed: int) -> None:
+        from companion.georef.shading import slopes
 
-    def periodic(fn, img):  # evaluate on a 3x3 tiling so the derivatives wrap, keep the middle
-        big = fn(np.tile(img, (3, 3)))
-        return big[n : 2 * n, n : 2 * n]
+        self.n = n
+        rng = np.random.default_rng(seed)
+        self.fy = np.fft.fftfreq(n)[:, None]
+        self.fx = np.fft.fftfreq(n)[None, :]
+        f = np.hypot(self.fx, self.fy)
+        spec = np.fft.fft2(rng.standard_normal((n, n))) * np.exp(-((f / corner_cycles_per_m) ** 2))
+        h = np.fft.ifft2(spec).real
+        self.h = (15.0 * h / h.std()).astype(np.float32)
+        sun = Sun.from_degrees(10.0, 0.0, 45.0)
+        self.shading = self.periodic(lambda x: lambert_shading(x, 1.0, sun))
+        de = self.periodic(lambda x: slopes(x, 1.0)[0])
+        dn = self.periodic(lambda x: slopes(x, 1.0)[1])
+        inv_n = 1.0 / np.sqrt(1.0 + de * de + dn * dn)
+        self.shading_bases = [self.shading, de * inv_n, dn * inv_n, inv_n]
 
-    shading = periodic(lambda x: lambert_shading(x, 1.0, sun), h)
-    de = periodic(lambda x: slopes(x, 1.0)[0], h)
-    dn = periodic(lambda x: slopes(x, 1.0)[1], h)
-    inv_n = 1.0 / np.sqrt(1.0 + de * de + dn * dn)
-    relief = h - h.mean()
-    bases = [shading, de * inv_n, dn * inv_n, inv_n, relief]
-    truth = np.array([0.37, -0.21])  # (right, down) pixels
+    def periodic(self, fn):  # evaluate on a 3x3 tiling so that filters wrap, keep the middle
+        n = self.n
+        return fn(np.tile(self.h, (3, 3)))[n : 2 * n, n : 2 * n]
 
-    def shifted(img):  # content moved by ``truth`` (exact, periodic)
-        ramp = np.exp(-2j * np.pi * (fx * truth[0] + fy * truth[1]))
+    def relief(self, scale_m: float) -> np.ndarray:
+        """The matcher's local-relief basis: h - Gaussian blur of h (std ``scale_m``)."""
+        return self.periodic(lambda x: x - cv2.GaussianBlur(x, (0, 0), scale_m))
+
+    def shifted(self, img: np.ndarray, shift_px: np.ndarray) -> np.ndarray:
+        """``img``'s content moved by (right, down) ``shift_px`` (exact, periodic)."""
+        ramp = np.exp(-2j * np.pi * (self.fx * shift_px[0] + self.fy * shift_px[1]))
         return np.fft.ifft2(np.fft.fft2(img) * ramp).real.astype(np.float32)
 
-    frame = shifted(shading - 1.0 * relief)  # as strong as the shading at the longest wavelengths
-    ones = np.ones((n, n), np.float32)
-    f_img = phase.spectrum(frame, ones)
-    f_bases = [phase.spectrum(b.astype(np.float32), ones) for b in bases]
-    f_lo, f_hi = 3.0 / n, 0.2
-    w = phase.band_weight(n, n, f_lo, f_hi)
-    corr = phase.correlate_spectra(f_img, f_bases[0], (n, n), w, 16)
-    pull = corr.shift_px - truth
+    def joint_shift(self, frame: np.ndarray, bases: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """(the presumed-sun correlation's shift, ``illumination.joint_shift`` from it) with these bases."""
+        from companion.georef import illumination, phase
+
+        n = self.n
+        ones = np.ones((n, n), np.float32)
+        f_img = phase.spectrum(frame, ones)
+        f_bases = [phase.spectrum(b.astype(np.float32), ones) for b in bases]
+        f_lo, f_hi = 3.0 / n, 0.2
+        w = phase.band_weight(n, n, f_lo, f_hi)
+        corr = phase.correlate_spectra(f_img, f_bases[0], (n, n), w, 16)
+        b = illumination.bins((n, n), f_lo, f_hi, 4, 8)
+        return corr.shift_px, illumination.joint_shift(f_img, f_bases, b, corr.shift_px)
+
+
+def test_joint_shift_is_not_pulled_by_a_height_like_term() -> None:
+    # The frame is the shading plus a reflectance tied to the relief (darker high ground), shifted by a known
+    # sub-pixel amount. Correlating against the shading alone puts the peak off along the sun; minimising the
+    # fitted residual over the shift (the even term is one of the bases) finds the shift.
+    t = _PeriodicTerrain(128, 0.04, 5)
+    relief = t.h - t.h.mean()
+    truth = np.array([0.37, -0.21])  # (right, down) pixels
+    # as strong as the shading at the longest wavelengths
+    presumed, est = t.joint_shift(t.shifted(t.shading - 1.0 * relief, truth), t.shading_bases + [relief])
+    pull = presumed - truth
     assert abs(pull[1]) > 0.05 and abs(pull[1]) > 5 * abs(pull[0])  # pulled off, along the sun (north)
-    b = illumination.bins((n, n), f_lo, f_hi, 4, 8)
-    est = illumination.joint_shift(f_img, f_bases, b, corr.shift_px)
     np.testing.assert_allclose(est, truth, atol=0.005)
+
+
+def test_joint_shift_needs_the_relief_at_the_reflectance_scale() -> None:
+    # Reflectance tied to the relief at a small scale (h - blur(h, 5 m): dust in small hollows) is not a
+    # per-ring multiple of the 20 m relief image where the two filters differ, inside the lowest frequency
+    # ring: with the 20 m basis alone the rest pulls the joint shift along the sun; with a 5 m basis beside
+    # it (``GeorefOptions.relief_scales_m`` = (20, 5), terrain SLAM's) the shift is found.
+    t = _PeriodicTerrain(128, 0.06, 5)
+    r20, r5 = t.relief(20.0), t.relief(5.0)
+    truth = np.array([0.37, -0.21])
+    frame = t.shifted(t.shading - r5 * float(t.shading.std() / r5.std()), truth)
+    _, one = t.joint_shift(frame, t.shading_bases + [r20])
+    _, two = t.joint_shift(frame, t.shading_bases + [r20, r5])
+    assert abs(one[1] - truth[1]) > 0.05 and abs(one[1] - truth[1]) > 3 * abs(one[0] - truth[0])
+    np.testing.assert_allclose(two, truth, atol=0.005)
+
+
+def test_reference_map_has_one_relief_basis_per_scale() -> None:
+    from companion.georef.reference import OrthoGrid, ReferenceMap
+
+    h = np.random.default_rng(0).normal(0.0, 2.0, (80, 80)).astype(np.float32)
+    dem = Dem(h, 40.0, -40.0, 1.0)
+    ref = ReferenceMap(dem, Sun.from_degrees(10.0, 0.0, 45.0), relief_scales_m=(20.0, 5.0))
+    assert ref.basis_names == ("shading", "slope_east", "slope_north", "flat", "relief_20m", "relief_5m")
+    bases = ref.sample_bases(OrthoGrid.make(np.zeros(2), 0.0, 0.5, 64))
+    assert len(bases) == 6 and all(b.shape == (64, 64) for b in bases)
+    # the smaller scale keeps less of the long wavelengths: less variance than the 20 m relief
+    assert 0.0 < float(bases[5].std()) < float(bases[4].std())

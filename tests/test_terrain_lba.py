@@ -244,7 +244,7 @@ def test_back_end_worker_that_cannot_start_fails_at_once_with_its_exit_code() ->
 
     dem = Dem(np.zeros((50, 50), np.float32), 25.0, -25.0, 1.0)
     opt = TerrainLbaOptions(backend_start_timeout_s=100.0)
-    opt = replace(opt, georef=replace(opt.georef, relief_scale_m=0.0))
+    opt = replace(opt, georef=replace(opt.georef, relief_scales_m=(0.0,)))
     t0 = time.monotonic()
     with pytest.raises(RuntimeError, match="exit code 1"):
         TerrainLbaEstimator(opt, INTR, R_BODY_CAM_NADIR, dem, Sun.from_degrees(10, 0, 60), np.zeros(3))

@@ -86,7 +86,9 @@ class GeorefOptions:
     n_rings: int = 4  # fitted reference: independent coefficients per log-spaced frequency ring
     n_sectors: int = 8  # coherence weights: orientation sectors per ring
     coherence_floor: float = 0.05  # coherence weight rho^2 / (1 - rho^2 + floor)
-    relief_scale_m: float = 20.0  # local-relief basis: h - Gaussian blur of this std (m)
+    # local-relief bases, h - Gaussian blur of h with each of these stds (m): reflectance tied to the relief
+    # (dust in hollows) at that scale; one scale alone leaves a term at another scale that pulls the shift
+    relief_scales_m: tuple[float, ...] = (20.0,)
     rock_filter_px: int = 1  # spot filter size (work pixels; 1 = off: measured no better on the scenes)
     rock_filter: str = "median"  # "median" (symmetric) or "close" (grey closing: dark spots only)
     contrast_sigma_px: float = 8.0  # frame divided by its local mean (Gaussian std, work px): albedo patches
@@ -205,7 +207,7 @@ class GeoReferencer:
             options.reference_upsample,
             options.dem_smooth_cells,
             with_bases=options.refine,
-            relief_scale_m=options.relief_scale_m,
+            relief_scales_m=tuple(options.relief_scales_m),
         )
         self.intr_work = intrinsics.scaled(options.work_scale)
         side = options.grid_fraction * max(self.intr_work.width, self.intr_work.height)

@@ -75,11 +75,11 @@ class ReferenceMap:
     smooth_cells: Gaussian std (DEM cells) applied to the heights before shading: the DEM's per-cell noise
         turns into large, spurious slopes otherwise.
     with_bases: also precompute the basis rasters of ``companion.georef.illumination`` (sun-agnostic shading
-        terms p_e/n, p_n/n, 1/n and the local relief h - blur(h, relief_scale_m)), in ``BASIS_NAMES`` order
-        after the presumed-sun shading.
+        terms p_e/n, p_n/n, 1/n and the local relief h - blur(h, s) for every s in ``relief_scales_m``), in
+        ``basis_names`` order after the presumed-sun shading.
     """
 
-    BASIS_NAMES = ("shading", "slope_east", "slope_north", "flat", "relief")
+    SHADING_BASIS_NAMES = ("shading", "slope_east", "slope_north", "flat")
 
     def __init__(
         self,
@@ -88,7 +88,7 @@ class ReferenceMap:
         upsample: int = 2,
         smooth_cells: float = 0.7,
         with_bases: bool = True,
-        relief_scale_m: float = 20.0,
+        relief_scales_m: tuple[float, ...] = (20.0,),
     ) -> None:
         if np.isnan(dem.height_m).all():
             raise ValueError("DEM has no valid cell")
@@ -117,12 +117,14 @@ class ReferenceMap:
             cell = dem.cell_m / u
             de, dn = slopes(fine, cell)
             inv_n = 1.0 / np.sqrt(1.0 + de * de + dn * dn)
-            relief = fine - cv2.GaussianBlur(
-                fine, (0, 0), relief_scale_m / cell, borderType=cv2.BORDER_REPLICATE
-            )
+            relief = [
+                fine - cv2.GaussianBlur(fine, (0, 0), s / cell, borderType=cv2.BORDER_REPLICATE)
+                for s in relief_scales_m
+            ]
             self._bases = np.ascontiguousarray(
-                np.dstack([de * inv_n, dn * inv_n, inv_n, relief]).astype(np.float32)
+                np.dstack([de * inv_n, dn * inv_n, inv_n, *relief]).astype(np.float32)
             )
+        self.basis_names = self.SHADING_BASIS_NAMES + tuple(f"relief_{s:g}m" for s in relief_scales_m)
 
     def _raster_affine(self, grid: OrthoGrid, cell_scale: float) -> np.ndarray:
         """2x3 M with raster (col, row) = M @ (grid col, grid row, 1); raster cells ``cell_scale`` per DEM cell,
@@ -153,7 +155,7 @@ class ReferenceMap:
         return GridSample(np.ascontiguousarray(sh[..., 0]), np.ascontiguousarray(sh[..., 1]), invalid)
 
     def sample_bases(self, grid: OrthoGrid, shading: np.ndarray | None = None) -> list[np.ndarray]:
-        """The basis images (``BASIS_NAMES`` order) on ``grid``, (size, size) float32 each; ``shading`` is the
+        """The basis images (``basis_names`` order) on ``grid``, (size, size) float32 each; ``shading`` is the
         already sampled first one (else sampled again). Needs ``with_bases``."""
         if self._bases is None:
             raise ValueError("ReferenceMap was built without bases")
