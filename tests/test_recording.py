@@ -104,6 +104,8 @@ def record_frames(a, b, path: Path, n: int = 8, period_s: float = 0.1) -> tuple[
         payloads.append(encode_image(pattern(k), stamp, frame_id="nadir_camera"))
     status.publish({"state": "tracking", "frames": n})
     assert wait_for(lambda: rec.summary()["topics"].get("/companion/status", {}).get("messages") == 1)
+    # the frames travel on another key than the status: under load the last one can land after the status
+    wait_for(lambda: rec.summary()["topics"].get("/uav/camera/nadir", {}).get("messages") == n)
     summary = rec.stop()
     pub.close()
     status.close()
