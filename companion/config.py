@@ -154,6 +154,10 @@ class TerrainLbaConfig(_Strict):
     # the autopilot's roll/pitch error (rad, 1 sigma), the adjustment's gravity prior per key frame: at 100 m
     # a tilt error of 0.1 deg moves the camera 0.17 m sideways for the same ground point (set from your AHRS)
     attitude_sigma_rad: Annotated[float, Field(gt=0)] = 0.003
+    # that prior's roll/pitch: the autopilot attitude of this many recent frames averaged (each carried to the
+    # key frame by the visual odometry's rotation since); averages the attitude's noise, not a bias; 1 = the
+    # key frame's own sample
+    gravity_frames: Annotated[int, Field(ge=1, le=200)] = 20
 
 
 class EkfConfig(_Strict):

@@ -64,6 +64,7 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             terrain_sigma_m=t.terrain_sigma_m,
             terrain_sigma_horizontal_m=t.terrain_sigma_horizontal_m,
             attitude_sigma_rad=t.attitude_sigma_rad,
+            gravity_frames=t.gravity_frames,
             compass_sigma_rad=float(np.radians(t.compass_sigma_deg)),
         )
         lba_opt = replace(

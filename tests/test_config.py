@@ -132,6 +132,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         "terrain_sigma_m": 0.7,
         "terrain_sigma_horizontal_m": 0.3,
         "attitude_sigma_rad": 0.004,
+        "gravity_frames": 5,
     }
     assert set(changed) == set(TerrainLbaConfig.model_fields)  # a new key must join here
     dem_path = tmp_path / "dem.npz"
@@ -164,6 +165,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
                 assert getattr(opt, key) == value, key
         assert (lba.w_geo, lba.terrain_sigma_m, lba.terrain_sigma_horizontal_m) == (5.0, 0.7, 0.3)
         assert lba.gravity_sigma_rad == 0.004
+        assert opt.vo.gravity_frames == 5
     finally:
         est.close()
 

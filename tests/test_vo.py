@@ -11,7 +11,7 @@ from companion.constants import R_BODY_CAM_NADIR
 from companion.geometry import CameraIntrinsics, camera_pose, make_T, rot_from_rpy
 from companion.vo.geometry import PnpOptions, reproject, solve_pnp, translation_known_rotation, triangulate
 from companion.vo.keyframes import KeyframeOptions, is_keyframe
-from companion.vo.odometry import VisualOdometry, VoOptions
+from companion.vo.odometry import VisualOdometry, VoOptions, down_in_cam, gravity_in_cam
 from companion.vo.tracking import TrackerOptions, detect, track
 
 INTR = CameraIntrinsics.from_focal_sensor(480, 480, 36, 36)
@@ -158,3 +158,23 @@ def test_odometry_on_rendered_frames(flight):
     flown = np.linalg.norm(flight[-1][4] - flight[0][4])
     assert np.max(errs) < 0.15 * flown
     assert len(vo.lm) > 100
+
+
+def test_key_frame_gravity_averages_the_attitude_noise_and_ignores_the_map_tilt():
+    """Known answer: frames along a turn, the VO's rotations exact but the whole map tilted 20 mrad, the
+    autopilot's roll / pitch with 3 mrad of white noise: 20 frames' average is within the noise over
+    sqrt(20) of the true down in the newest frame, one sample is not, and the map's tilt is gone."""
+    rng = np.random.default_rng(3)
+    R_map = rot_from_rpy(0.02, -0.015, 0.0)  # the VO's world, tilted
+    e_z = np.array([0.0, 0.0, 1.0])
+    one, avg = [], []
+    for trial in range(200):
+        R_true = [rot_from_rpy(0.1 + 0.01 * j, -0.05, 0.3 * j + trial) @ R_BODY_CAM_NADIR for j in range(20)]
+        R_att = [rot_from_rpy(*rng.normal(0, 0.003, 2), 0.0) @ R for R in R_true]
+        downs = [R_map @ R @ down_in_cam(Ra) for R, Ra in zip(R_true, R_att)]
+        truth = R_true[-1].T @ e_z
+        avg.append(np.arccos(np.clip(gravity_in_cam(R_map @ R_true[-1], downs) @ truth, -1, 1)))
+        one.append(np.arccos(np.clip(gravity_in_cam(R_map @ R_true[-1], downs[-1:]) @ truth, -1, 1)))
+    # mean of a 2-D Gaussian's norm: sigma * sqrt(pi / 2)
+    assert np.mean(one) == pytest.approx(0.003 * np.sqrt(np.pi / 2), rel=0.15)
+    assert np.mean(avg) == pytest.approx(0.003 / np.sqrt(20) * np.sqrt(np.pi / 2), rel=0.15)

@@ -139,6 +139,10 @@ class TerrainLbaOptions:
     terrain_sigma_horizontal_m: float = 0.5
     # the adjustment's roll/pitch prior from the autopilot's attitude, 1 sigma (``LbaOptions.gravity_sigma_rad``)
     attitude_sigma_rad: float = 0.003
+    # that prior's roll / pitch from the autopilot attitude of this many recent frames, carried to the key
+    # frame through the VO's rotation since (``VoOptions.gravity_frames``): averages the attitude's
+    # frame-to-frame noise, not its bias; 1 = the key frame's own sample. Paired Table 7 flights: README
+    gravity_frames: int = 20
     min_frames_between_kf: int = 20  # key-frame criterion 1 (paper / ORB-SLAM)
     min_features_kf: int = 50  # key-frame criterion 2
     max_tracked_ratio_kf: float = 0.9  # key-frame criterion 3
@@ -195,7 +199,7 @@ class TerrainLbaOptions:
         )
         return replace(
             self,
-            vo=replace(self.vo, keyframes=kf),
+            vo=replace(self.vo, keyframes=kf, gravity_frames=self.gravity_frames),
             backend=replace(self.backend, lba=lba, drift_sigma_per_m=self.drift_sigma_per_m),
         )
 

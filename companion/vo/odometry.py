@@ -17,6 +17,7 @@ World frame NED; poses ``T_world_cam`` (4, 4). Pure math (numpy + OpenCV), no I/
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -47,6 +48,10 @@ class VoOptions:
     init_min_points: int = 40  # triangulated points needed to accept the initialisation
     init_centre_points: int = 30  # points nearest the image centre whose median depth meets the altimeter
     max_keyframes_kept: int = 60  # older key frames (and points only they see) are forgotten
+    # a key frame's gravity direction (the adjustment's roll / pitch prior) from the autopilot attitude of
+    # this many recent tracked frames, each carried into the key frame by the VO's rotation since: averages
+    # the attitude's frame-to-frame noise (1 = the key frame's own sample only)
+    gravity_frames: int = 1
 
 
 @dataclass
@@ -101,6 +106,17 @@ def down_in_cam(R_world_cam: np.ndarray | None) -> np.ndarray:
     return R_world_cam.T @ np.array([0.0, 0.0, 1.0])
 
 
+def gravity_in_cam(R_world_cam: np.ndarray, downs_world: list[np.ndarray] | deque[np.ndarray]) -> np.ndarray:
+    """(3,) unit world-down in the camera frame of ``R_world_cam`` from several frames' views of it.
+
+    downs_world: per frame j, the down direction its attitude sample gives, put in the VO's world frame,
+    R_vo_j R_att_j^T e_z (R_vo: the VO's R_world_cam, R_att: the autopilot's). A tilt of the whole map cancels
+    (it is in R_vo_j and in R_world_cam alike); the attitude's noise averages out; the VO's rotation error
+    between frame j and this one enters. No library does this three-line average: written here."""
+    g = np.mean(np.asarray(downs_world, float), axis=0)
+    return R_world_cam.T @ (g / np.linalg.norm(g))
+
+
 class VisualOdometry:
     """Tracks a nadir camera. Call ``process`` once per frame, in capture order."""
 
@@ -123,6 +139,7 @@ class VisualOdometry:
         self._init: dict | None = None
         self._p_start: np.ndarray | None = None
         self._R_prev: np.ndarray | None = None
+        self._gravity: deque[np.ndarray] = deque(maxlen=max(int(options.gravity_frames), 1))
 
     # ------------------------------------------------------------------------------------------------
     # public
@@ -142,6 +159,7 @@ class VisualOdometry:
         self._pts = np.zeros((0, 2), np.float32)
         self._ids = np.zeros(0, np.int64)
         self._init = None
+        self._gravity.clear()
 
     def process(
         self,
@@ -265,6 +283,8 @@ class VisualOdometry:
                 self.lm[t] = R_c @ self.lm[t] + t_c
         if self.T is not None:
             self.T = C @ self.T
+        # the recent frames' gravity follows the current pose it will be compared with
+        self._gravity = deque((R_c @ g for g in self._gravity), maxlen=self._gravity.maxlen)
         for k, t in zip(outlier_kf, outlier_lm):
             o = self.obs.get(int(t))
             if o is not None:
@@ -405,6 +425,9 @@ class VisualOdometry:
             self.state = "lost"
             return VoStatus("lost", None, len(self._pts), 0, None)
         self.T = res.T_world_cam
+        if R_att is not None:
+            # world down as the autopilot saw it, in the world frame of the VO (R_vo R_att^T e_z)
+            self._gravity.append(self.T[:3, :3] @ down_in_cam(R_att))
         # PnP outliers: drop the track (the point keeps its key-frame observations for the adjustment)
         keep = np.ones(len(self._ids), bool)
         keep[np.flatnonzero(has)[~res.inliers]] = False
@@ -422,7 +445,10 @@ class VisualOdometry:
 
     def _make_keyframe(self, img: np.ndarray, stamp_us: int, R_att: np.ndarray | None) -> int:
         assert self.T is not None
-        k = self._add_kf(self.frame_index, stamp_us, self.T, down_in_cam(R_att), self._ids, self._pts)
+        down = down_in_cam(R_att)
+        if R_att is not None and len(self._gravity) > 1:
+            down = gravity_in_cam(self.T[:3, :3], self._gravity)
+        k = self._add_kf(self.frame_index, stamp_us, self.T, down, self._ids, self._pts)
         self._last_kf_frame = self.frame_index
         # triangulate candidate tracks from their first key-frame view and this one
         cand = [i for i, t in enumerate(self._ids) if int(t) not in self.lm]
