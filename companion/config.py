@@ -151,13 +151,21 @@ class TerrainLbaConfig(_Strict):
     # landmarks held on the DEM in the adjustment: the DEM's vertical / horizontal error (m); 0 = off
     terrain_sigma_m: Annotated[float, Field(ge=0)] = 0.5
     terrain_sigma_horizontal_m: Annotated[float, Field(ge=0)] = 0.5
-    # the autopilot's roll/pitch error (rad, 1 sigma), the adjustment's gravity prior per key frame: at 100 m
-    # a tilt error of 0.1 deg moves the camera 0.17 m sideways for the same ground point (set from your AHRS)
+    # the autopilot's roll/pitch noise per sample (rad, 1 sigma, frame to frame), the source of the
+    # adjustment's gravity prior per key frame: at 100 m a tilt error of 0.1 deg moves the camera 0.17 m
+    # sideways for the same ground point (set from your AHRS)
     attitude_sigma_rad: Annotated[float, Field(gt=0)] = 0.003
     # that prior's roll/pitch: the autopilot attitude of this many recent frames averaged (each carried to the
     # key frame by the visual odometry's rotation since); averages the attitude's noise, not a bias; 1 = the
     # key frame's own sample
     gravity_frames: Annotated[int, Field(ge=1, le=200)] = 20
+    # the part of that average's error that more frames do not shrink (rad, 1 sigma): the AHRS's slow error
+    # (a bias, a vibration-driven drift) and the VO's rotation error over the frames. Raise it for an AHRS
+    # whose roll/pitch wander: the prior's sigma is sqrt(attitude^2 / gravity_frames + floor^2)
+    attitude_floor_sigma_rad: Annotated[float, Field(ge=0)] = 0.001
+    # each frame's output roll/pitch: the visual odometry's (this 1 sigma) fused with that average, the camera
+    # turned about the ground it sees; 0 = the odometry's alone
+    vo_tilt_sigma_rad: Annotated[float, Field(ge=0)] = 0.001
 
 
 class EkfConfig(_Strict):

@@ -65,6 +65,8 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             terrain_sigma_horizontal_m=t.terrain_sigma_horizontal_m,
             attitude_sigma_rad=t.attitude_sigma_rad,
             gravity_frames=t.gravity_frames,
+            attitude_floor_sigma_rad=t.attitude_floor_sigma_rad,
+            vo_tilt_sigma_rad=t.vo_tilt_sigma_rad,
             compass_sigma_rad=float(np.radians(t.compass_sigma_deg)),
         )
         lba_opt = replace(

@@ -133,6 +133,8 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         "terrain_sigma_horizontal_m": 0.3,
         "attitude_sigma_rad": 0.004,
         "gravity_frames": 5,
+        "attitude_floor_sigma_rad": 0.0,
+        "vo_tilt_sigma_rad": 0.002,
     }
     assert set(changed) == set(TerrainLbaConfig.model_fields)  # a new key must join here
     dem_path = tmp_path / "dem.npz"
@@ -164,7 +166,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
             else:
                 assert getattr(opt, key) == value, key
         assert (lba.w_geo, lba.terrain_sigma_m, lba.terrain_sigma_horizontal_m) == (5.0, 0.7, 0.3)
-        assert lba.gravity_sigma_rad == 0.004
+        assert lba.gravity_sigma_rad == pytest.approx(0.004 / np.sqrt(5))  # floor 0: the noise over 5 frames
         assert opt.vo.gravity_frames == 5
     finally:
         est.close()

@@ -6,12 +6,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from companion.constants import R_BODY_CAM_NADIR
 from companion.geometry import CameraIntrinsics, camera_pose, make_T, rot_from_rpy
 from companion.vo.geometry import PnpOptions, reproject, solve_pnp, translation_known_rotation, triangulate
 from companion.vo.keyframes import KeyframeOptions, is_keyframe
-from companion.vo.odometry import VisualOdometry, VoOptions, down_in_cam, gravity_in_cam
+from companion.vo.odometry import VisualOdometry, VoOptions, down_in_cam, gravity_in_cam, tilt_toward
 from companion.vo.tracking import TrackerOptions, detect, track
 
 INTR = CameraIntrinsics.from_focal_sensor(480, 480, 36, 36)
@@ -178,3 +179,24 @@ def test_key_frame_gravity_averages_the_attitude_noise_and_ignores_the_map_tilt(
     # mean of a 2-D Gaussian's norm: sigma * sqrt(pi / 2)
     assert np.mean(one) == pytest.approx(0.003 * np.sqrt(np.pi / 2), rel=0.15)
     assert np.mean(avg) == pytest.approx(0.003 / np.sqrt(20) * np.sqrt(np.pi / 2), rel=0.15)
+
+
+def test_tilt_toward_turns_the_camera_about_the_ground_it_sees():
+    """Known answer: a nadir camera 100 m up, seen 2 mrad tilted with its position shifted so that the ground
+    at the image centre is right (the PnP ambiguity). All the way to the true down gives back the true pose;
+    half way halves the tilt; the ground point on the optical axis and the heading never move."""
+    T_true = _pose(0.0, 0.0, 0.7, [10.0, -4.0, -100.0])
+    ground = T_true[:3, 3] + T_true[:3, 2] * 100.0
+    tilt = Rotation.from_rotvec([0.0012, -0.0016, 0.0]).as_matrix()  # 2 mrad about a horizontal axis
+    T_seen = make_T(tilt @ T_true[:3, :3], ground + tilt @ (T_true[:3, 3] - ground))
+    down_true = T_true[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    full = tilt_toward(T_seen, down_true, 1.0, 100.0)
+    np.testing.assert_allclose(full, T_true, atol=1e-9)
+    half = tilt_toward(T_seen, down_true, 0.5, 100.0)
+    ang = np.arccos(np.clip(half[:3, :3].T @ np.array([0.0, 0.0, 1.0]) @ down_true, -1, 1))
+    assert ang == pytest.approx(0.001, rel=1e-3)
+    np.testing.assert_allclose(half[:3, 3] + half[:3, 2] * 100.0, ground, atol=1e-9)
+    assert np.linalg.norm(half[:2, 3] - T_true[:2, 3]) == pytest.approx(0.1, rel=1e-2)  # 1 mrad x 100 m
+    yaw = [np.arctan2(T[1, 0], T[0, 0]) for T in (T_seen, half, full)]  # camera x (image right) keeps heading
+    np.testing.assert_allclose(yaw, yaw[0], atol=2e-6)
+    np.testing.assert_allclose(tilt_toward(T_seen, down_true, 0.0, 100.0), T_seen, atol=1e-12)

@@ -55,7 +55,7 @@ from companion.types import (
     LocalPositionSample,
     PoseEstimate,
 )
-from companion.vo.odometry import VisualOdometry, VoOptions
+from companion.vo.odometry import VisualOdometry, VoOptions, tilt_toward
 
 log = logging.getLogger(__name__)
 
@@ -137,12 +137,20 @@ class TerrainLbaOptions:
     # horizontal error (m); 0 = off. Only once the map is aligned to the world (position and yaw).
     terrain_sigma_m: float = 0.5
     terrain_sigma_horizontal_m: float = 0.5
-    # the adjustment's roll/pitch prior from the autopilot's attitude, 1 sigma (``LbaOptions.gravity_sigma_rad``)
+    # the autopilot's roll/pitch noise per sample (rad, 1 sigma, frame to frame): the gravity prior's source
     attitude_sigma_rad: float = 0.003
-    # that prior's roll / pitch from the autopilot attitude of this many recent frames, carried to the key
-    # frame through the VO's rotation since (``VoOptions.gravity_frames``): averages the attitude's
+    # the gravity prior's roll / pitch from the autopilot attitude of this many recent frames, carried to the
+    # key frame through the VO's rotation since (``VoOptions.gravity_frames``): averages the attitude's
     # frame-to-frame noise, not its bias; 1 = the key frame's own sample. Paired Table 7 flights: README
     gravity_frames: int = 20
+    # what of that average's error does not shrink with more frames (rad, 1 sigma): the autopilot's slow
+    # error and the VO's rotation error over the averaged frames. The adjustment's prior (and the output
+    # blend below) weighs the average by ``gravity_sigma_rad`` = sqrt(attitude^2 / gravity_frames + floor^2)
+    attitude_floor_sigma_rad: float = 0.001
+    # each frame's output roll/pitch: the VO's tilt (1 sigma against true gravity; measured 0.8 mrad per axis
+    # on scenes 01 and 07 after the adjustment) fused with the same attitude average, the camera turned
+    # about the ground point it sees (``tilt_toward``); the VO and its map keep their own. 0 = the VO's alone
+    vo_tilt_sigma_rad: float = 0.001
     min_frames_between_kf: int = 20  # key-frame criterion 1 (paper / ORB-SLAM)
     min_features_kf: int = 50  # key-frame criterion 2
     max_tracked_ratio_kf: float = 0.9  # key-frame criterion 3
@@ -182,6 +190,11 @@ class TerrainLbaOptions:
     # within this of the compass's (measured, scene 01, compass 10 deg off: without the sweep the search
     # stays near the compass and the flight never aligns)
 
+    @property
+    def gravity_sigma_rad(self) -> float:
+        """1 sigma of a key frame's (or a frame's) attitude average: its noise over the frames plus the floor."""
+        return float(np.hypot(self.attitude_sigma_rad / np.sqrt(max(self.gravity_frames, 1)), self.attitude_floor_sigma_rad))
+
     def resolved(self) -> TerrainLbaOptions:
         """Copy with the top-level fields pushed into the nested options they control."""
         kf = replace(
@@ -195,7 +208,7 @@ class TerrainLbaOptions:
             w_geo=self.w_geo,
             terrain_sigma_m=self.terrain_sigma_m,
             terrain_sigma_horizontal_m=self.terrain_sigma_horizontal_m,
-            gravity_sigma_rad=self.attitude_sigma_rad,
+            gravity_sigma_rad=self.gravity_sigma_rad,
         )
         return replace(
             self,
@@ -679,7 +692,7 @@ class TerrainLbaEstimator:
             return self._not_ok(t, EstimateStatus.LOST, st)
         if st.T_world_cam is None:
             return self._not_ok(t, EstimateStatus.INITIALISING, st)
-        T = st.T_world_cam
+        T = self._output_tilt(st.T_world_cam, rng)
         R_wb = T[:3, :3] @ self.R_body_cam.T
         p_body = T[:3, :3] @ self.p_body_in_cam + T[:3, 3]
         if self._last_p_body is not None:
@@ -719,6 +732,25 @@ class TerrainLbaEstimator:
             status=EstimateStatus.OK,
             info=info,
         )
+
+    def _output_tilt(self, T_world_cam: np.ndarray, range_m: float | None) -> np.ndarray:
+        """The frame's pose with its roll/pitch fused with the recent attitude average (``vo_tilt_sigma_rad``).
+
+        Inverse-variance weights of the two tilts (small angles); the pivot is the ground along the optical
+        axis, at the range finder's range or, without one, the DEM's. The recent attitude samples also went
+        into the newest key frames' priors, so the two are not quite independent: measured, not derived
+        (README, terrain SLAM)."""
+        s_vo = self.opt.vo_tilt_sigma_rad
+        down = self.vo.averaged_down() if s_vo > 0 else None
+        if down is None:
+            return T_world_cam
+        if range_m is None:
+            R_wc, p_c = T_world_cam[:3, :3], T_world_cam[:3, 3]
+            range_m = self._range_from_dem(R_wc @ self.p_body_in_cam + p_c, R_wc @ self.R_body_cam.T)
+            if range_m is None:
+                return T_world_cam
+        w = s_vo**2 / (s_vo**2 + self.opt.gravity_sigma_rad**2)
+        return tilt_toward(T_world_cam, down, w, range_m)
 
     def _range_from_dem(self, p_body: np.ndarray, R_world_body: np.ndarray) -> float | None:
         """Without an altimeter: range along body down to the DEM below ``p_body`` (flat-ground model)."""

@@ -21,6 +21,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from companion.geometry import make_T
 from companion.vo.geometry import (
@@ -117,6 +118,29 @@ def gravity_in_cam(R_world_cam: np.ndarray, downs_world: list[np.ndarray] | dequ
     return R_world_cam.T @ (g / np.linalg.norm(g))
 
 
+def tilt_toward(T_world_cam: np.ndarray, down_cam: np.ndarray, weight: float, depth_m: float) -> np.ndarray:
+    """(4, 4) the camera pose turned so that its world-down moves ``weight`` (0..1) of the way to ``down_cam``.
+
+    down_cam: (3,) unit world-down in this camera's frame from another source (the attitude average). The turn
+    is the smallest one (about a horizontal axis: no yaw) and pivots about the point ``depth_m`` along the
+    optical axis, the ground the camera sees: a nadir camera's tilt and its sideways position trade for the
+    same image, so the ground point stays and the camera moves by depth x angle."""
+    R, p = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    d_vo = R.T @ np.array([0.0, 0.0, 1.0])
+    axis = np.cross(d_vo, down_cam)
+    angle = np.arctan2(np.linalg.norm(axis), float(d_vo @ down_cam))
+    if angle < 1e-12:
+        return T_world_cam.copy()
+    # B turns d_vo toward down_cam in the camera frame; the new camera R' = R B^T has R'^T e_z = B d_vo
+    B = Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle * weight).as_matrix()
+    Q = R @ B.T @ R.T  # the same turn in the world frame
+    c = p + R[:, 2] * depth_m
+    out = np.eye(4)
+    out[:3, :3] = Q @ R
+    out[:3, 3] = c + Q @ (p - c)
+    return out
+
+
 class VisualOdometry:
     """Tracks a nadir camera. Call ``process`` once per frame, in capture order."""
 
@@ -147,6 +171,12 @@ class VisualOdometry:
     @property
     def last_kf(self) -> KeyFrame | None:
         return self.kfs[max(self.kfs)] if self.kfs else None
+
+    def averaged_down(self) -> np.ndarray | None:
+        """(3,) world down in the current camera frame from the recent frames' attitude (``gravity_frames``)."""
+        if self.T is None or not self._gravity:
+            return None
+        return gravity_in_cam(self.T[:3, :3], self._gravity)
 
     def reset(self) -> None:
         """Forget the map and start a new initialisation at the next frame."""
