@@ -193,7 +193,11 @@ class TerrainLbaOptions:
     @property
     def gravity_sigma_rad(self) -> float:
         """1 sigma of a key frame's (or a frame's) attitude average: its noise over the frames plus the floor."""
-        return float(np.hypot(self.attitude_sigma_rad / np.sqrt(max(self.gravity_frames, 1)), self.attitude_floor_sigma_rad))
+        return float(
+            np.hypot(
+                self.attitude_sigma_rad / np.sqrt(max(self.gravity_frames, 1)), self.attitude_floor_sigma_rad
+            )
+        )
 
     def resolved(self) -> TerrainLbaOptions:
         """Copy with the top-level fields pushed into the nested options they control."""
