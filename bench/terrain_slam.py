@@ -506,6 +506,9 @@ def main(argv: list[str] | None = None) -> int:
         "terrain_sigma_m": base.terrain_sigma_m,
         "terrain_sigma_horizontal_m": base.terrain_sigma_horizontal_m,
         "attitude_sigma_rad": base.attitude_sigma_rad,
+        "gravity_frames": base.gravity_frames,
+        "attitude_floor_sigma_rad": base.attitude_floor_sigma_rad,
+        "vo_tilt_sigma_rad": base.vo_tilt_sigma_rad,
     }
     # scene 08 circular carries Table 4's confidences and both methods of Tables 5 and 7
     if tables & {"4", "5", "7"} and ("08" in scenes or tables & {"4", "5"}):
