@@ -12,7 +12,11 @@ away from where it is (0.35 m per 0.2 degree at 100 m). This benchmark measures 
 (circular, 190 s, 100 m above ground, the scene's lighting):
 
 - ``none``: the ``terrain_slam`` setting;
-- ``tilt bias``: every ATTITUDE sample's roll off by ``--degrees`` (as a whole flight's bias);
+- ``tilt bias``: every ATTITUDE sample's roll off by ``--degrees`` (as a whole flight's bias), flown twice:
+  with the defaults, and with ``attitude_floor_sigma_rad`` set to that angle (the estimator told its
+  autopilot's attitude may be that far off beyond its noise);
+- ``tilt wander``: roll and pitch off by a first-order Gauss-Markov error of ``--degrees`` (1 sigma) and
+  ``--wander-tau-s`` (10 s), a slowly wandering AHRS horizon, the same two ways;
 - ``mount error``: the camera pitched forward by ``--degrees`` on the vehicle, the estimator told nadir;
 - ``mount error, calibrated``: the same frames, the estimator given the true mount (what
   ``cameras.nadir.extra_rpy_deg`` in the configuration is for);
@@ -62,6 +66,13 @@ def main(argv: list[str] | None = None) -> int:
         default=120.0,
         help="heading error of the no-compass case, searched over +-180 deg (0: no such case)",
     )
+    p.add_argument("--wander-tau-s", type=float, default=10.0, help="time constant of the tilt wander case")
+    p.add_argument(
+        "--cases",
+        nargs="+",
+        default=None,
+        help="run only these cases (none, tilt_bias, tilt_wander, mount_error, compass_bias_5, ...)",
+    )
     a = p.parse_args(argv)
     dur = a.duration_s or (30.0 if a.quick else 190.0)
     ang = float(np.radians(a.degrees))
@@ -71,7 +82,21 @@ def main(argv: list[str] | None = None) -> int:
         (
             "tilt_bias",
             FlightSpec(a.scene, "circular", dur, a.seed, tilt_bias_rad=(ang, 0.0)),
-            {"terrain_lba": f"tilt bias (roll {a.degrees:g} deg)"},
+            {
+                "default": f"tilt bias (roll {a.degrees:g} deg)",
+                "floor": f"tilt bias (roll {a.degrees:g} deg), attitude floor set to it",
+            },
+            (),
+        ),
+        (
+            "tilt_wander",
+            FlightSpec(
+                a.scene, "circular", dur, a.seed, tilt_wander_rad=ang, tilt_wander_tau_s=a.wander_tau_s
+            ),
+            {
+                "default": f"tilt wander ({a.degrees:g} deg, {a.wander_tau_s:g} s)",
+                "floor": f"tilt wander ({a.degrees:g} deg, {a.wander_tau_s:g} s), attitude floor set to it",
+            },
             (),
         ),
         (
@@ -104,16 +129,24 @@ def main(argv: list[str] | None = None) -> int:
     # without a compass the search covers the whole turn (``estimator.terrain_lba.heading_search_deg``)
     # and trusts no heading until the terrain gives one (``compass_sigma_deg`` 180)
     lba_360 = replace(lba, georef=replace(lba.georef, rs_sweep_deg=180.0), compass_sigma_rad=float(np.pi))
+    # told how far the autopilot's roll / pitch may be off beyond its noise (``attitude_floor_sigma_rad``)
+    floor = replace(lba, attitude_floor_sigma_rad=ang)
+
+    def options(case: str, name: str) -> TerrainLbaOptions:
+        if name == "compass_only":
+            return no_heading
+        if name == "floor":
+            return floor
+        return lba_360 if case.startswith("no_compass") else lba
+
+    cases = [c for c in cases if not a.cases or c[0] in a.cases]
     results: dict[str, Any] = {"quick": a.quick, "seed": a.seed, "scene": a.scene, "degrees": a.degrees}
     rows = []
     for case, spec, names, known in cases:
         print(f"  {case}: scene {spec.scene_id} circular {dur:.0f}s", flush=True)
         r = run_flight(
             spec,
-            {
-                n: no_heading if n == "compass_only" else lba_360 if case.startswith("no_compass") else lba
-                for n in names
-            },
+            {n: options(case, n) for n in names},
             log=False,
             mount_known=known,
         )

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from evo.core import metrics, sync
 from evo.core.trajectory import PoseTrajectory3D
+from scipy.signal import lfilter
 
 from bench.common import parser, table, write_json
 from companion.constants import GRAVITY_MPS2, R_BODY_CAM_NADIR
@@ -62,9 +63,26 @@ class FlightSpec:
     # (roll, pitch, yaw in the body frame, rad; composed as ``CameraConfig.R_body_cam``) while the estimator
     # is told the nominal nadir mount unless the method is listed in ``run_flight``'s ``mount_known``
     tilt_bias_rad: tuple[float, float] = (0.0, 0.0)
+    # a roll / pitch error that wanders (an AHRS's slow error: warm-up, vibration): a first-order Gauss-Markov
+    # process per axis with this stationary sigma (rad) and time constant (s), on top of the white noise and
+    # drawn from its own generator, so the flight's other draws stay those of the plain flight
+    tilt_wander_rad: float = 0.0
+    tilt_wander_tau_s: float = 10.0
     mount_error_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # the compass's bias (rad, on the initial yaw and every ATTITUDE yaw); None: drawn from ``SimNoise``
     yaw_bias_rad: float | None = None
+
+
+def gauss_markov(n: int, dt_s: float, sigma: float, tau_s: float, seed: int) -> np.ndarray:
+    """(n, 2) a stationary first-order Gauss-Markov process per axis: x_k+1 = a x_k + sqrt(1 - a^2) sigma w_k,
+    a = exp(-dt / tau). Zeros when sigma is 0 (no draws at all)."""
+    if sigma <= 0:
+        return np.zeros((n, 2))
+    rng = np.random.default_rng([seed, 11])
+    a = float(np.exp(-dt_s / tau_s))
+    u = rng.normal(0.0, 1.0, (n, 2)) * sigma * np.sqrt(1.0 - a * a)
+    u[0] /= np.sqrt(1.0 - a * a)  # the first sample from the stationary distribution
+    return lfilter([1.0], [1.0, -a], u, axis=0)
 
 
 def make_trajectory(kind: str, duration_s: float, ground_m: float) -> Trajectory:
@@ -133,6 +151,9 @@ class Simulation:
         self.p_true = np.stack([s.p_world for s in self.states])
         self.yaw0 = float(rpy_from_rot(self.states[0].R_world_body)[2]) + self.yaw_bias
         self.R_body_cam_true = rot_from_rpy(*spec.mount_error_rpy_rad) @ R_BODY_CAM_NADIR
+        self.tilt_wander = gauss_markov(
+            len(self.times), 1.0 / CAMERA_HZ, spec.tilt_wander_rad, spec.tilt_wander_tau_s, spec.seed
+        )
         self.render_s = 0.0
 
     def estimator(self, options: TerrainLbaOptions, mount_known: bool = False) -> TerrainLbaEstimator:
@@ -171,7 +192,7 @@ class Simulation:
             rpy = rpy_from_rot(s.R_world_body) + self.rng.normal(
                 0.0, [n.roll_pitch_rad, n.roll_pitch_rad, n.yaw_rad]
             )
-            rpy[:2] += self.spec.tilt_bias_rad
+            rpy[:2] += np.asarray(self.spec.tilt_bias_rad) + self.tilt_wander[k]
             att = AttitudeSample(stamp, float(rpy[0]), float(rpy[1]), float(rpy[2] + self.yaw_bias))
             r = self.scene.dem.beam_range(s.p_world, s.R_world_body[:, 2])
             r += self.rng.normal(0.0, n.range_m + n.range_frac * r)
@@ -266,6 +287,7 @@ def run_flight(
         ],
         "yaw_bias_deg": float(np.degrees(spec_yaw_bias)),
         "tilt_bias_deg": [float(np.degrees(x)) for x in spec.tilt_bias_rad],
+        "tilt_wander_deg_tau_s": [float(np.degrees(spec.tilt_wander_rad)), spec.tilt_wander_tau_s],
         "mount_error_rpy_deg": [float(np.degrees(x)) for x in spec.mount_error_rpy_rad],
         "setup_s": setup_s,
         "render_ms_per_frame": render_s / len(times) * 1e3,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.terrain_slam import FlightSpec, Simulation
+from bench.terrain_slam import FlightSpec, Simulation, gauss_markov
 from companion.config import CameraConfig
 from companion.constants import R_BODY_CAM_NADIR
 from companion.estimators.terrain_lba import TerrainLbaOptions
@@ -58,3 +58,22 @@ def test_compass_bias_is_on_the_initial_yaw_and_every_sample_and_leaves_the_draw
     assert [x.roll_rad for x in a] == [x.roll_rad for x in b]
     dyaw = np.array([y.yaw_rad - x.yaw_rad for x, y in zip(a, b)])
     assert np.allclose(dyaw, 0.09 - drawn.yaw_bias, atol=1e-12)
+
+
+def test_tilt_wander_is_a_gauss_markov_error_and_leaves_the_draws_alone() -> None:
+    """Known answer for the process (stationary sigma, correlation e^-1 one time constant apart), and the
+    flight's own noise draws unchanged: the roll/pitch samples differ from the plain flight's by the
+    wander alone."""
+    x = gauss_markov(150_000, 1.0 / 15.0, 0.0035, 10.0, seed=3)
+    assert x.std(axis=0) == pytest.approx([0.0035, 0.0035], rel=0.1)
+    lag = 150  # 10 s at 15 Hz
+    assert np.corrcoef(x[:-lag, 0], x[lag:, 0])[0, 1] == pytest.approx(np.exp(-1.0), abs=0.06)
+    assert not gauss_markov(10, 0.1, 0.0, 10.0, seed=3).any()
+    plain = Simulation(FlightSpec("01", "circular", 2.0, 0))
+    wander = Simulation(FlightSpec("01", "circular", 2.0, 0, tilt_wander_rad=0.004, tilt_wander_tau_s=5.0))
+    a = [att for _, att, _, _ in plain.samples()]
+    b = [att for _, att, _, _ in wander.samples()]
+    d = np.array([[y.roll_rad - x.roll_rad, y.pitch_rad - x.pitch_rad] for x, y in zip(a, b)])
+    np.testing.assert_allclose(d, wander.tilt_wander[: len(d)], atol=1e-12)
+    assert [x.yaw_rad for x in a] == [y.yaw_rad for y in b]
+    assert np.abs(d).max() > 0.0005  # the wander is there
