@@ -139,6 +139,9 @@ def main(argv: list[str] | None = None) -> int:
             return floor
         return lba_360 if case.startswith("no_compass") else lba
 
+    unknown = set(a.cases or ()) - {c[0] for c in cases}
+    if unknown:
+        p.error(f"unknown case(s) {sorted(unknown)}; the cases: {[c[0] for c in cases]}")
     cases = [c for c in cases if not a.cases or c[0] in a.cases]
     results: dict[str, Any] = {"quick": a.quick, "seed": a.seed, "scene": a.scene, "degrees": a.degrees}
     rows = []
