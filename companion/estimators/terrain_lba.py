@@ -285,6 +285,9 @@ class TerrainLbaEstimator:
         self.R_body_cam = np.asarray(R_body_cam, float)
         self.p_body_in_cam = np.zeros(3)  # the camera sits at the body origin (no lever arm configured)
         self.vo = VisualOdometry(self.opt.vo, self.K)
+        # each frame's tilt fusion: inverse-variance weight of the attitude average (``_output_tilt``)
+        s_vo2 = self.opt.vo_tilt_sigma_rad**2
+        self._tilt_weight = s_vo2 / (s_vo2 + self.opt.gravity_sigma_rad**2) if s_vo2 > 0 else 0.0
         self._dem = dem.filled()
         self.initial_p_world = np.asarray(initial_p_world, float)
         self.initial_yaw_rad = float(initial_yaw_rad)
@@ -744,8 +747,7 @@ class TerrainLbaEstimator:
         axis, at the range finder's range or, without one, the DEM's. The recent attitude samples also went
         into the newest key frames' priors, so the two are not quite independent: measured, not derived
         (README, terrain SLAM)."""
-        s_vo = self.opt.vo_tilt_sigma_rad
-        down = self.vo.averaged_down() if s_vo > 0 else None
+        down = self.vo.averaged_down() if self._tilt_weight > 0 else None
         if down is None:
             return T_world_cam
         if range_m is None:
@@ -753,8 +755,7 @@ class TerrainLbaEstimator:
             range_m = self._range_from_dem(R_wc @ self.p_body_in_cam + p_c, R_wc @ self.R_body_cam.T)
             if range_m is None:
                 return T_world_cam
-        w = s_vo**2 / (s_vo**2 + self.opt.gravity_sigma_rad**2)
-        return tilt_toward(T_world_cam, down, w, range_m)
+        return tilt_toward(T_world_cam, down, self._tilt_weight, range_m)
 
     def _range_from_dem(self, p_body: np.ndarray, R_world_body: np.ndarray) -> float | None:
         """Without an altimeter: range along body down to the DEM below ``p_body`` (flat-ground model)."""
