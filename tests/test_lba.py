@@ -18,7 +18,7 @@ from companion.constants import R_BODY_CAM_NADIR
 from companion.geometry import CameraIntrinsics, make_T, rot_from_rpy, wrap_pi
 from companion.georef.dem import Dem
 from companion.lba.align import align_yaw_translation
-from companion.lba.backend import Backend, BackendJob, BackendOptions, ground_below
+from companion.lba.backend import Backend, BackendJob, BackendOptions, ground_below, quality_var_scale
 from companion.lba.gauge import gauge_covariance
 from companion.lba.window import (
     LbaOptions,
@@ -619,3 +619,48 @@ def test_reported_variance_factor_stays_against_the_nominal_sigma_when_the_sigma
     assert out[True].geo["fix_sigma_m"] > 0.6  # learnt well above the nominal 0.32 m
     np.testing.assert_array_equal(out[True].T_world_cam, out[False].T_world_cam)
     assert (out[True].cov_newest / out[False].cov_newest)[0, 0] > 3.0
+
+
+def test_quality_var_scale_is_relative_to_the_recent_peaks_and_capped():
+    """A fix's variance grows by (q_ref / q)^(2 power) below q_ref, the recent peaks' percentile capped at
+    ``ref_max``: on terrain where every peak is low, the usual ones count fully."""
+    good = np.full(30, 0.6)
+    assert quality_var_scale(0.6, good, 75.0, 0.35, 1.5) == 1.0
+    assert quality_var_scale(0.4, good, 75.0, 0.35, 1.5) == 1.0  # above the cap: no matter
+    assert quality_var_scale(0.175, good, 75.0, 0.35, 1.5) == pytest.approx(2.0**3)
+    assert quality_var_scale(0.175, good, 75.0, 0.35, 1.0) == pytest.approx(2.0**2)
+    low = np.linspace(0.12, 0.22, 30)  # gravel-like terrain: the 75th percentile is 0.195
+    assert quality_var_scale(0.2, low, 75.0, 0.35, 1.5) == 1.0
+    assert quality_var_scale(0.13, low, 75.0, 0.35, 1.5) == pytest.approx((0.195 / 0.13) ** 3)
+    assert quality_var_scale(0.0, low, 75.0, 0.35, 1.5) > 1e6  # no division by zero
+
+
+def test_backend_weights_low_peak_fixes_less():
+    """Every other fix has a low peak and is 1.5 m off to the east (as a bad match is, in a run); the
+    good ones scatter 0.1 m. Weighted by their peaks the window stays near the good fixes; weighted alike it
+    is pulled about halfway to the bad ones."""
+    T, P, ok, ol, opx, rng = _scene(5, n_kf=30)
+    low = {i: i % 2 == 1 for i in range(len(T))}
+    fixes = {
+        i: T[i, :3, 3] + (np.array([0.0, 1.5, 0.0]) if low[i] else rng.normal(0, 0.1, 3))
+        for i in range(len(T))
+    }
+    snap_all = _snapshot(T, P, ok, ol, opx)
+    current = {"k": 0}
+
+    def locate(image, R, p, alt, solve_rotation_scale):
+        f = _Fix(fixes[current["k"]])
+        f.quality = 0.15 if low[current["k"]] else 0.5
+        return f
+
+    east_err = {}
+    for window in (0, 30):
+        be = Backend(BackendOptions(lba=LbaOptions(w_geo=10.0), geo_quality_window=window), locate)
+        for k in range(2, len(T)):
+            current["k"] = k
+            res = be.process(_first_kfs_job(snap_all, T, k))
+        assert res.counters["fix_rejected"] == 0  # the gate takes the nominal sigma: none is gated
+        idx = res.kf_ids.astype(int)
+        east_err[window] = float(np.mean(res.T_world_cam[:, 1, 3] - T[idx, 1, 3]))
+    assert east_err[0] > 0.5
+    assert abs(east_err[30]) < 0.25
