@@ -7,6 +7,7 @@ heading from the matcher's rotation recovery."""
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import gtsam
 import numpy as np
@@ -664,3 +665,11 @@ def test_backend_weights_low_peak_fixes_less():
         east_err[window] = float(np.mean(res.T_world_cam[:, 1, 3] - T[idx, 1, 3]))
     assert east_err[0] > 0.5
     assert abs(east_err[30]) < 0.25
+    # the covariance sent still counts the weak fixes' scatter in full: its variance factor is the same
+    # with their larger sigma forgotten
+    solved = SimpleNamespace(kf_ids=res.kf_ids, T_world_cam=res.T_world_cam)
+    assert max(f[6] for f in be.fixes.values()) > 10.0
+    vf = be._variance_factor(solved)
+    for f in be.fixes.values():
+        f[6] = 1.0
+    assert vf > 2.0 and vf == be._variance_factor(solved)
