@@ -129,6 +129,8 @@ class TerrainLbaConfig(_Strict):
     # the fixes' sigma (1 m / sqrt(w_geo) to start) grows to the scatter the fixes show about the visual
     # odometry, where the terrain matches worse (README); false: fixed by w_geo
     fix_sigma_adapt: bool = True
+    # each fix's sigma grows as its match peak falls below the recent fixes' (README); false: every fix alike
+    fix_peak_weighting: bool = True
     min_frames_between_kf: Annotated[int, Field(ge=1)] = 20
     min_features_kf: Annotated[int, Field(ge=1)] = 50
     max_tracked_ratio_kf: Annotated[float, Field(gt=0, le=1)] = 0.9

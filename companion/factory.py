@@ -81,6 +81,7 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
                 lba_opt.backend,
                 heading_from_matcher=t.heading_from_matcher,
                 geo_sigma_adapt=t.fix_sigma_adapt,
+                geo_quality_window=lba_opt.backend.geo_quality_window if t.fix_peak_weighting else 0,
             ),
         )
         return TerrainLbaEstimator(

@@ -121,6 +121,7 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         "window_size": 12,
         "w_geo": 5.0,
         "fix_sigma_adapt": False,
+        "fix_peak_weighting": False,
         "min_frames_between_kf": 15,
         "min_features_kf": 60,
         "max_tracked_ratio_kf": 0.8,
@@ -159,6 +160,8 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
                 assert opt.backend.heading_from_matcher is value
             elif key == "fix_sigma_adapt":
                 assert opt.backend.geo_sigma_adapt is value
+            elif key == "fix_peak_weighting":
+                assert opt.backend.geo_quality_window == 0
             elif key == "heading_search_deg":
                 assert opt.georef.rs_sweep_deg == value
             elif key == "compass_sigma_deg":
