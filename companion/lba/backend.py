@@ -53,7 +53,7 @@ class BackendOptions:
     # a fix counts less the lower its phase-correlation peak q: its sigma0 grows by (q_ref / q)^power when
     # q < q_ref, q_ref the ``geo_quality_percentile``-th percentile of the last ``geo_quality_window`` fixes'
     # peaks, at most ``geo_quality_ref_max`` (``quality_var_scale``). Within one terrain a fix's error grows
-    # steeply as its peak falls (the committed Table 7 flights, both seeds, fixes used, horizontal RMS with
+    # steeply as its peak falls (scratch replays of the Table 7 flights, both seeds, fixes used, horizontal RMS with
     # errors capped at 3 m, at q < 0.15 / 0.18-0.22 / 0.22-0.3 / 0.3-0.5: scene 02 1.71 / 0.84 / 0.66 / 0.28 m,
     # 05 1.40 / 0.76 / 0.42 / none, 08 none / 0.56 / 0.40 / 0.21 m: log-log slopes 1.4-1.8), while above 0.3
     # it hardly does (03: 0.28 m at 0.3-0.5, 0.23 m above). Relative to the recent peaks, not to one q: where
