@@ -216,7 +216,14 @@ class TerrainLbaOptions:
         )
         return replace(
             self,
-            vo=replace(self.vo, keyframes=kf, gravity_frames=self.gravity_frames),
+            vo=replace(
+                self.vo,
+                keyframes=kf,
+                gravity_frames=self.gravity_frames,
+                # the map's first two views: the relative rotation of two attitude samples, sqrt(2) x the
+                # roll/pitch noise, with room for the yaw's jitter (larger than roll/pitch's in an AHRS)
+                two_view=replace(self.vo.two_view, rotation_prior_sigma_rad=2.0 * self.attitude_sigma_rad),
+            ),
             backend=replace(self.backend, lba=lba, drift_sigma_per_m=self.drift_sigma_per_m),
         )
 

@@ -9,8 +9,9 @@ the local bundle adjustment refines; ``apply_correction`` writes its result back
 
 Initialisation: from the first frame (pose known: the initial position and the autopilot's attitude)
 until the features have moved ``init_parallax_px``; the displacement direction comes from the epipolar
-constraint with the rotations known (``geometry.translation_known_rotation``) and its length from the
-altimeter range (the depth of the ground at the image centre): monocular scale is fixed there, once.
+constraint, the second view's rotation refined from the matches with the autopilot's attitude as its prior
+(``geometry.relative_pose_rotation_prior``), and its length from the altimeter range (the depth of the
+ground at the image centre): monocular scale is fixed there, once.
 
 World frame NED; poses ``T_world_cam`` (4, 4). Pure math (numpy + OpenCV), no I/O.
 """
@@ -28,9 +29,9 @@ from companion.vo.geometry import (
     PnpOptions,
     TriangulationOptions,
     TwoViewOptions,
+    relative_pose_rotation_prior,
     reproject,
     solve_pnp,
-    translation_known_rotation,
     triangulate,
 )
 from companion.vo.keyframes import KeyframeOptions, is_keyframe
@@ -379,11 +380,11 @@ class VisualOdometry:
         flow = np.median(np.linalg.norm(px1 - h[:, :2] / h[:, 2:], axis=1))
         if flow < self.opt.init_parallax_px:
             return VoStatus("initialising", None, len(self._pts), 0, None)
-        d, inl = translation_known_rotation(self.K, T0[:3, :3], R_att, px0, px1, self.opt.two_view)
+        R1, d, inl = relative_pose_rotation_prior(self.K, T0[:3, :3], R_att, px0, px1, self.opt.two_view)
         if inl.sum() < self.opt.init_min_points:
             self._init = None
             return VoStatus("initialising", None, len(self._pts), 0, None)
-        T1u = make_T(R_att, T0[:3, 3] + d)
+        T1u = make_T(R1, T0[:3, 3] + d)
         # unit baseline: depth limits do not apply yet (the scale comes next)
         unit = replace(self.opt.triangulation, min_depth_m=1e-9, max_depth_m=np.inf)
         X, ok = triangulate(self.K, T0, T1u, px0, px1, unit)
@@ -397,7 +398,7 @@ class VisualOdometry:
         near = np.argsort(r_c)[: self.opt.init_centre_points]
         scale = st["range0"] / float(np.median(z0[near]))
         c0 = T0[:3, 3]
-        T1 = make_T(R_att, c0 + scale * d)
+        T1 = make_T(R1, c0 + scale * d)
         X = c0 + scale * (X - c0)
         # two key frames and the first map points
         self._add_kf(st["frame"], st["stamp"], T0, down_in_cam(T0[:3, :3]), st["ids0"], st["px0"])
