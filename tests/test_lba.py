@@ -216,14 +216,18 @@ def _first_kfs_job(snap_all: WindowSnapshot, T: np.ndarray, k: int, held: bool =
     )
 
 
-def test_first_window_marginals_are_expected_to_fail_and_not_counted():
-    """Key frames 0 and 1: one is held, the monocular scale is free, so the newest pose's marginal is
-    indeterminate by construction; from three key frames on (two held) it is determined. Only a failure
-    after that start is a failure."""
+def test_first_window_is_held_whole_and_its_marginal_is_not_a_failure():
+    """Key frames 0 and 1 (the VO's initial pair): with the newest free the monocular scale would be free
+    and the adjustment would slide it along the baseline, so both are held (the points alone move) and the
+    newest has no marginal, by construction; from three key frames on (two held) it is determined. Only a
+    failure after that start is a failure."""
     T, P, ok, ol, opx, _ = _scene(5)
-    snap_all = _snapshot(T, P, ok, ol, opx)
+    T_init = T.copy()
+    T_init[1, :3, 3] += 0.2 * (T[1, :3, 3] - T[0, :3, 3])  # the initial pair's scale 20 % off
+    snap_all = _snapshot(T_init, P, ok, ol, opx)
     be = Backend(BackendOptions(lba=LbaOptions(w_geo=0.0)), None)
-    first = be.process(_first_kfs_job(snap_all, T, 1, held=False))
+    first = be.process(_first_kfs_job(snap_all, T_init, 1, held=False))
+    np.testing.assert_allclose(first.T_world_cam[1][:3, 3], T_init[1][:3, 3], atol=1e-3)
     assert not np.all(np.isfinite(first.cov_newest))
     assert first.counters["marginals_failed"] == 0
     second = be.process(_first_kfs_job(snap_all, T, 2, held=False))
