@@ -640,6 +640,18 @@ def test_quality_var_scale_is_relative_to_the_recent_peaks_and_capped():
     assert quality_var_scale(0.0, low, 75.0, 0.35, 1.5) > 1e6  # no division by zero
 
 
+def test_quality_var_scale_trusts_a_peak_above_the_recent_ones_and_the_cap_more():
+    """A fix matched well above the recent fixes' percentile and the cap counts more, by (q_hi / q)^(2 power)
+    down to ``bonus_min``; one above the cap but not above the recent peaks does not."""
+    low = np.r_[np.linspace(0.12, 0.22, 29), 0.6]  # off a featureless stretch: one strong match
+    assert quality_var_scale(0.6, low, 75.0, 0.35, 1.5, 0.25) == 0.25  # (0.35 / 0.6)^3 = 0.2, floored
+    assert quality_var_scale(0.42, low, 75.0, 0.35, 1.5, 0.25) == pytest.approx((0.35 / 0.42) ** 3)
+    assert quality_var_scale(0.6, low, 75.0, 0.35, 1.5) == 1.0  # bonus off
+    good = np.full(30, 0.6)
+    assert quality_var_scale(0.6, good, 75.0, 0.35, 1.5, 0.25) == 1.0  # as good as the recent ones
+    assert quality_var_scale(0.9, good, 75.0, 0.35, 1.5, 0.25) == pytest.approx((0.6 / 0.9) ** 3)
+
+
 def test_backend_weights_low_peak_fixes_less():
     """Every other fix has a low peak and is 1.5 m off to the east (as a bad match is, in a run); the
     good ones scatter 0.1 m. Weighted by their peaks the window stays near the good fixes; weighted alike it
