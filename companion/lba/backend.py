@@ -583,7 +583,7 @@ class Backend:
         for d in (self.cov, self.fixes):
             for k in [k for k in d if k < oldest - 200]:
                 del d[k]
-        cov_newest = sol.cov[-1] if M and not whole_held else np.full((6, 6), np.nan)
+        cov_newest = np.full((6, 6), np.nan) if whole_held else sol.cov[-1]  # (an empty window is held whole)
         if not np.all(np.isfinite(cov_newest)):
             # the first window is held whole: it has no marginal of its own, expected, not a failure
             if not whole_held:
