@@ -206,6 +206,12 @@ def bench_options(detect_scale: float | None = None, initial_attitude_deg: float
     return o
 
 
+def sift_of_runs(results: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The SIFT settings the trials ran with, when every trial recorded the same (else None)."""
+    seen = {json.dumps(r.get("sift"), sort_keys=True) for r in results}
+    return json.loads(seen.pop()) if len(seen) == 1 else None
+
+
 def trajectory_names(arg: str | None, quick: bool) -> list[str]:
     """--trajectories "1,2,.." as a list; default all ten, --quick "1" and "6"."""
     if arg:
@@ -311,6 +317,7 @@ def run_trial(
     # dual pair rate: SIFT on both images + the dual filter step
     out["pair_s"] = t_sift / n + out["dual"]["filter_s_per_frame"]
     out["detect_scale"] = base.detect_scale
+    out["sift"] = {c: list(base.sift_settings(c)) for c in ("visible", "thermal")}  # (nfeatures, contrast)
     return out
 
 
@@ -638,6 +645,9 @@ def main(argv: list[str] | None = None) -> int:
             "world_seed": WORLD_SEED,
             "seed": a.seed if a.from_runs is None else runs_seeds(results),
             "detect_scale": BENCH_OPTIONS.detect_scale if a.detect_scale is None else a.detect_scale,
+            # SIFT (nfeatures, contrast threshold) per camera, as the trials ran (runs logs older than this
+            # field: null)
+            "sift": sift_of_runs(results),
             "initial_attitude_sigma_deg": (
                 INITIAL_ATTITUDE_DEG if a.initial_attitude_deg is None else a.initial_attitude_deg
             ),

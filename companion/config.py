@@ -188,7 +188,7 @@ class EkfConfig(_Strict):
     # SIFT per camera: keypoints kept per image (best by contrast) and the contrast threshold; set from your
     # cameras (a faint, smooth thermal image wants a lower threshold)
     sift_nfeatures_visible: Annotated[int, Field(ge=10, le=5000)] = 800
-    sift_nfeatures_thermal: Annotated[int, Field(ge=10, le=5000)] = 400
+    sift_nfeatures_thermal: Annotated[int, Field(ge=10, le=5000)] = 800
     sift_contrast_threshold_visible: Annotated[float, Field(gt=0, lt=1)] = 0.02
     sift_contrast_threshold_thermal: Annotated[float, Field(gt=0, lt=1)] = 0.005
 

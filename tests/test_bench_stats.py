@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 from scipy.stats import ttest_rel
 
-from bench.thermal_ekf import holm_adjusted, improvement, improvement_bootstrap, paired_worse, runs_seeds
+from bench.thermal_ekf import (
+    holm_adjusted,
+    improvement,
+    improvement_bootstrap,
+    paired_worse,
+    runs_seeds,
+    sift_of_runs,
+)
 
 
 def test_paired_worse_is_scipys_one_sided_paired_t() -> None:
@@ -76,6 +83,15 @@ def test_runs_seeds_reports_what_the_records_say() -> None:
     assert runs_seeds([{"seed": 1}, {"seed": 0}, {"seed": 1}]) == [0, 1]
     assert runs_seeds([{"seed": 0}, {"name": "1"}]) is None
     assert runs_seeds([]) is None
+
+
+def test_sift_of_runs_names_the_settings_only_when_every_trial_agrees() -> None:
+    """Pooled runs logs of two SIFT settings, or older logs without the field, are not labelled with one."""
+    a = {"visible": [800, 0.02], "thermal": [800, 0.005]}
+    b = {"visible": [800, 0.02], "thermal": [400, 0.005]}
+    assert sift_of_runs([{"sift": a}, {"sift": dict(a)}]) == a
+    assert sift_of_runs([{"sift": a}, {"sift": b}]) is None
+    assert sift_of_runs([{"sift": a}, {"name": "1"}]) is None
 
 
 def test_ekf_patch_summary_pairs_each_variant_with_sift_only() -> None:
