@@ -101,9 +101,9 @@ class EkfOptions:
     # 300-trial benchmark, paired against 400 / 0.02 for both cameras (thermal's keypoints were contrast-limited,
     # ~300 a frame): E lower by 0.073 +- 0.016 / 0.036 +- 0.010 / 0.033 +- 0.010 points visible / thermal /
     # dual, SIFT 43 instead of 34 ms per pair (README). The thermal camera was then at its 400 cap (3 of 4
-    # frames sampled on trajectory 1): 800, paired over the 600 trials of seeds 0 and 1, lowered the mean position error by 0.037 +-
-    # 0.012 / 0.050 +- 0.012 m thermal and 0.025 +- 0.009 / 0.019 +- 0.009 m dual (E: thermal -0.012 /
-    # -0.015, dual -0.005 / -0.002 points), for 14.3-16.5 instead of 19.5-19.7 pairs/s
+    # frames sampled on trajectory 1): 800, paired over the 600 trials of seeds 0 and 1, lowered the mean
+    # position error by 0.037 +- 0.012 / 0.050 +- 0.012 m thermal and 0.025 +- 0.009 / 0.019 +- 0.009 m dual
+    # (E: thermal -0.012 / -0.015, dual -0.005 / -0.002 points), for 14.3-16.5 instead of 19.5-19.7 pairs/s
     # through the daemon path, measured in turn (README)
     sift_nfeatures_visible: int = 800
     sift_nfeatures_thermal: int = 800
