@@ -141,14 +141,16 @@ class TerrainLbaConfig(_Strict):
         20.0,
         5.0,
     ]
-    # at start-up, turn the map by the heading error the matcher recovers from the terrain (README); false:
-    # keep the compass heading until the fixes have spread 25 m
+    # at start-up, turn the map by the heading error the matcher recovers from the terrain, and match each
+    # fix at the heading its estimates so far give (README); false: keep the compass heading for both until
+    # the fixes have spread 25 m
     heading_from_matcher: bool = True
     # how far off the compass may be (deg): the matcher's start-up heading search tries headings this far
     # either side of it (180: no compass); each 2 deg more costs a match per start-up key frame (1.5-3 ms)
     heading_search_deg: Annotated[float, Field(ge=0, le=180)] = 30.0
     # the compass's 1-sigma error (deg): until the terrain gives the heading, the covariance sent to the
-    # autopilot carries it out along the distance from the start (180: no compass)
+    # autopilot carries it out along the distance from the start, and the start-up fixes weigh the compass
+    # against the matcher's heading estimates by it (180: no compass)
     compass_sigma_deg: Annotated[float, Field(gt=0, le=180)] = 2.0
     # landmarks held on the DEM in the adjustment: the DEM's vertical / horizontal error (m); 0 = off
     terrain_sigma_m: Annotated[float, Field(ge=0)] = 0.5

@@ -166,6 +166,8 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
                 assert opt.georef.rs_sweep_deg == value
             elif key == "compass_sigma_deg":
                 assert opt.compass_sigma_rad == pytest.approx(np.radians(value))
+                # the prior the start-up fixes' heading is shrunk towards
+                assert opt.backend.heading_prior_sigma_rad == pytest.approx(np.radians(value))
             else:
                 assert getattr(opt, key) == value, key
         assert (lba.w_geo, lba.terrain_sigma_m, lba.terrain_sigma_horizontal_m) == (5.0, 0.7, 0.3)

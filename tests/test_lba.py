@@ -279,8 +279,9 @@ def _fly_with_heading_error(
     """A start-up over ``_scene``: the map turned by -yaw_err_deg (a compass that far off), good fixes, and a
     matcher whose heading estimate (true yaw - given yaw) has ``rot_noise_deg`` of noise. The key frames span
     about 20 m RMS, short of ``align_min_spread_m``: only the matcher's heading can align the yaw. A plain fix
-    (no heading search) asked at a heading more than ``plain_off_deg`` wrong ``plain_off``: "fails", or is
-    "wrong" by metres in a random direction, as the phase correlation does. Returns the back-end and the
+    (no heading search) asked at a heading more than ``plain_off_deg`` wrong ``plain_off``: "fails", is
+    "wrong" by metres in a random direction, as the phase correlation does, or is "biased" east by 1.2 m per
+    degree. Returns the back-end and the
     map's remaining yaw error (deg) after the corrections it sent."""
     T, P, ok, ol, opx, rng = _scene(seed)
     d = np.radians(-yaw_err_deg)
@@ -299,6 +300,10 @@ def _fly_with_heading_error(
         elif abs(off) > np.radians(plain_off_deg):
             if plain_off == "fails":
                 f.ok, f.reason, f.p_world = False, "low_quality", np.full(3, np.nan)
+            elif plain_off == "biased":
+                # the correlation peak follows the part of the footprint that matches best: metres per
+                # degree, the same way over consecutive key frames (the Table 7 flights: 0.2-1.2 m/deg)
+                f.p_world = f.p_world + np.array([0.0, 1.2 * np.degrees(off), 0.0])
             else:
                 f.p_world = f.p_world + rng.normal(0.0, 4.0, 3)
         return f
@@ -328,12 +333,18 @@ def test_matcher_heading_turns_the_start_up_map_before_the_fixes_spread():
 
 
 def test_matcher_heading_rescues_a_start_up_whose_compass_is_too_far_off_for_the_plain_match():
-    # every plain fix at the compass heading fails: the search's heading finds the terrain
-    be, left_deg = _fly_with_heading_error(True, 10.0, 0.2, plain_off_deg=5.0, plain_off="fails")
-    assert be.aligned and be.yaw_aligned and abs(left_deg) < 0.25
-    assert be.counters["fix_heading_rescued"] >= 1 and be.counters["fix_accepted"] >= 3
-    # two agreeing estimates far off turned the map at once, the fine turn followed
-    assert be.counters["heading_coarse_turns"] == 1
+    # every plain fix at the compass heading fails: the search's heading finds the terrain. The plain fix is
+    # asked at the heading the estimates so far give (``heading_for_fixes``), or without that, asked again
+    # at the search's heading when it failed at the compass's ("rescued")
+    for at_estimate in (True, False):
+        be, left_deg = _fly_with_heading_error(
+            True, 10.0, 0.2, plain_off_deg=5.0, plain_off="fails", heading_for_fixes=at_estimate
+        )
+        assert be.aligned and be.yaw_aligned and abs(left_deg) < 0.25
+        assert be.counters["fix_accepted"] >= 3
+        assert (be.counters["fix_heading_rescued"] >= 1) is not at_estimate
+        # two agreeing estimates far off turned the map at once, the fine turn followed
+        assert be.counters["heading_coarse_turns"] == 1
     # the plain fixes are wrong by metres: they never agree on an alignment until the map is turned
     be, left_deg = _fly_with_heading_error(True, 10.0, 0.2, plain_off_deg=5.0, plain_off="wrong")
     assert be.aligned and be.yaw_aligned and abs(left_deg) < 0.25
@@ -350,6 +361,40 @@ def test_matcher_heading_rescues_a_start_up_whose_compass_is_too_far_off_for_the
     for mode in ("fails", "wrong"):
         be0, left0_deg = _fly_with_heading_error(False, 10.0, 0.2, plain_off_deg=5.0, plain_off=mode)
         assert not be0.aligned and abs(left0_deg) > 9.0
+
+
+def test_start_up_fixes_are_matched_at_the_heading_the_estimates_give_not_the_compass():
+    # a compass 1.5 deg off biases the plain fixes by 1.8 m, all the same way: the first alignment would
+    # place the map by that much; matched at the estimates' heading (0.3 deg noise each) they are not
+    T = _scene(5)[0]
+    err = {}
+    for at_estimate in (True, False):
+        be, _ = _fly_with_heading_error(
+            True, 1.5, 0.3, plain_off_deg=0.0, plain_off="biased", heading_for_fixes=at_estimate
+        )
+        first = sorted(be.fixes)[:3]
+        assert len(first) == 3
+        err[at_estimate] = float(np.mean([abs(be.fixes[k][1] - T[k, 1, 3]) for k in first]))
+    assert err[True] < 0.7 and err[False] > 1.4
+
+
+def test_fix_heading_is_the_estimates_median_shrunk_towards_the_compass():
+    be = Backend(BackendOptions(heading_prior_sigma_rad=np.radians(2.0)), None)
+    assert be.fix_heading() == 0.0
+    be.heading_samples.append(np.radians(3.0))
+    # one estimate of 1 deg spread against a 2 deg compass: 4 / (4 + 1.2533^2) of it
+    assert np.degrees(be.fix_heading()) == pytest.approx(3.0 * 4.0 / (4.0 + 1.2533**2), rel=1e-6)
+    # three that agree to 0.1 deg: nearly their median, a wild one does not move it
+    be.heading_samples[:] = list(np.radians([1.9, 2.0, 2.1, 40.0]))
+    assert np.degrees(be.fix_heading()) == pytest.approx(2.05, abs=0.1)
+    # across +-180 deg (no compass: a huge prior)
+    be = Backend(BackendOptions(heading_prior_sigma_rad=np.pi), None)
+    be.heading_samples[:] = list(np.radians([179.0, -179.0, 179.5]))
+    assert abs(np.degrees(wrap_pi(be.fix_heading() - np.pi))) < 1.0
+    # switched off: the compass's
+    be = Backend(BackendOptions(heading_for_fixes=False), None)
+    be.heading_samples.append(0.05)
+    assert be.fix_heading() == 0.0
 
 
 def test_alignment_recovers_yaw_and_translation_despite_an_outlier():

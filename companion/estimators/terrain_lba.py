@@ -224,7 +224,12 @@ class TerrainLbaOptions:
                 # roll/pitch noise, with room for the yaw's jitter (larger than roll/pitch's in an AHRS)
                 two_view=replace(self.vo.two_view, rotation_prior_sigma_rad=2.0 * self.attitude_sigma_rad),
             ),
-            backend=replace(self.backend, lba=lba, drift_sigma_per_m=self.drift_sigma_per_m),
+            backend=replace(
+                self.backend,
+                lba=lba,
+                drift_sigma_per_m=self.drift_sigma_per_m,
+                heading_prior_sigma_rad=self.compass_sigma_rad,
+            ),
         )
 
 
