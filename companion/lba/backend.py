@@ -137,6 +137,16 @@ class BackendOptions:
     # computed with (h x angle: 0.5 m for 0.3 deg at 100 m) does not pass into the fix. False: at the body.
 
 
+def _repeatable(rotation_rad: float) -> float:
+    """The matcher's heading estimate rounded to 1 microradian. Its last digits are not repeatable in the
+    back-end's worker process: the same key frames gave estimates 1e-10 rad apart in about one run in
+    three (measured; the same inputs replayed in one process repeat to the bit, the cause is not found).
+    Since each estimate now sets the heading of the next fixes, that noise turned a run that repeats to
+    the bit (``backend_apply = "fixed_delay"``) into one that does not; 1 microradian is 1e-4 of the
+    estimates' own accuracy (0.1 deg at best)."""
+    return round(float(rotation_rad), 6)
+
+
 @dataclass(frozen=True)
 class BackendJob:
     """One key frame's work.
@@ -417,7 +427,7 @@ class Backend:
             # altimeter's height, and at the heading the estimates so far give (``heading_for_fixes``)
             rs = self.locate(job.image, job.R_world_body, job.p_body_in_world, job.alt_agl_m, True)
             if rs.ok and rs.rotation_scale_quality >= self.opt.heading_min_quality:
-                self.heading_samples.append(float(rs.rotation_rad))
+                self.heading_samples.append(_repeatable(rs.rotation_rad))
             else:
                 rs = None
             d = self.fix_heading()
@@ -427,7 +437,7 @@ class Backend:
         if rs is not None and not fix.ok:
             # the compass is so far off that the plain match failed, but the search found the terrain: the
             # plain fix again at the heading it found
-            R_found = rot_from_rpy(0.0, 0.0, float(rs.rotation_rad)) @ job.R_world_body
+            R_found = rot_from_rpy(0.0, 0.0, _repeatable(rs.rotation_rad)) @ job.R_world_body
             fix = self.locate(job.image, R_found, job.p_body_in_world, job.alt_agl_m, False)
             if fix.ok:
                 self.counters["fix_heading_rescued"] += 1
