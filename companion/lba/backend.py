@@ -142,8 +142,8 @@ def _repeatable(rotation_rad: float) -> float:
     back-end's worker process: the same key frames gave estimates 1e-10 rad apart in about one run in
     three (measured; the same inputs replayed in one process repeat to the bit, the cause is not found).
     Since each estimate now sets the heading of the next fixes, that noise turned a run that repeats to
-    the bit (``backend_apply = "fixed_delay"``) into one that does not; 1 microradian is 1e-4 of the
-    estimates' own accuracy (0.1 deg at best)."""
+    the bit (``backend_apply = "fixed_delay"``) into one that does not; 1 microradian is under 1e-3 of the
+    estimates' own accuracy (0.1 deg, 1.7 mrad, at best)."""
     return round(float(rotation_rad), 6)
 
 
