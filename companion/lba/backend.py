@@ -118,9 +118,10 @@ class BackendOptions:
     # median, shrunk towards the compass by the two spreads) instead of at the compass's. A heading error
     # turns the frame against the reference about the optical axis, and the correlation peak then follows
     # whichever part of the footprint matches best: measured (scratch, key frames of the Table 7 flights
-    # matched at the true pose but the yaw, +-2 deg), 0.2-0.8 m of fix error per degree on 01 and 08, 1.1-1.2
-    # on 02, the same way over consecutive key frames; so a compass 1.36 deg off put the first three fixes of
-    # 02 (seed 2) 1.9-2.4 m west, and the map with them.
+    # matched at the true pose but the yaw, +-2 deg), 0.2-0.8 m of fix error per degree on 01 and 08, 1.0-1.2
+    # over the first six key frames of 02 (0.6-0.9 on two later ones), the same way over consecutive key
+    # frames; so a compass 1.36 deg off put the first three fixes of 02 (seed 2) 1.9-2.4 m west, and the map
+    # with them.
     heading_for_fixes: bool = True
     heading_prior_sigma_rad: float = float(np.radians(2.0))  # the compass's (``TerrainLbaOptions``)
     heading_sample_sigma_deg: float = 1.0  # one estimate's spread, until three show their own
