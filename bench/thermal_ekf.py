@@ -82,7 +82,7 @@ INITIAL_ATTITUDE_DEG = 0.01
 attitude (10 arcsec class, 0.003 deg, kept by a navigation-grade IMU through the descent); 0.01 deg is
 three times that. Yaw about gravity is unobservable to any of the three modes, so the initial yaw error
 grows the position error in proportion to the distance flown, in every mode alike, and adds to E: with 0.2
-deg (a MEMS AHRS, ``--initial-attitude-deg 0.2``) it is about a third of the thermal and dual E (README)."""
+deg (a MEMS AHRS, ``--initial-attitude-deg 0.2``) it is about a third of the thermal and dual E (docs/benchmarks.md)."""
 BENCH_OPTIONS = EkfOptions(
     initial_position_sigma_m=0.05,
     initial_velocity_sigma_mps=0.05,

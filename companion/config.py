@@ -127,14 +127,14 @@ class TerrainLbaConfig(_Strict):
     window_size: Annotated[int, Field(ge=2, le=100)] = 15
     w_geo: Annotated[float, Field(ge=0)] = 10.0
     # the fixes' sigma (1 m / sqrt(w_geo) to start) grows to the scatter the fixes show about the visual
-    # odometry, where the terrain matches worse (README); false: fixed by w_geo
+    # odometry, where the terrain matches worse (docs/benchmarks.md); false: fixed by w_geo
     fix_sigma_adapt: bool = True
-    # each fix's sigma grows as its match peak falls below the recent fixes' (README); false: every fix alike
+    # each fix's sigma grows as its match peak falls below the recent fixes' (docs/benchmarks.md); false: every fix alike
     fix_peak_weighting: bool = True
     min_frames_between_kf: Annotated[int, Field(ge=1)] = 20
     min_features_kf: Annotated[int, Field(ge=1)] = 50
     max_tracked_ratio_kf: Annotated[float, Field(gt=0, le=1)] = 0.9
-    joint_shift: bool = True  # key-frame fixes: shift estimated jointly with the fitted reference (README)
+    joint_shift: bool = True  # key-frame fixes: shift estimated jointly with the fitted reference (docs/benchmarks.md)
     # the scales (m) at which the matcher models reflectance tied to the relief (dust in hollows): its
     # fitted reference has a local-relief image, h - blur(h), per scale. Keep them several DEM cells wide
     relief_scales_m: Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=1, max_length=4)] = [
@@ -142,7 +142,7 @@ class TerrainLbaConfig(_Strict):
         5.0,
     ]
     # at start-up, turn the map by the heading error the matcher recovers from the terrain, and match each
-    # fix at the heading its estimates so far give (README); false: keep the compass heading for both until
+    # fix at the heading its estimates so far give (docs/benchmarks.md); false: keep the compass heading for both until
     # the fixes have spread 25 m
     heading_from_matcher: bool = True
     # how far off the compass may be (deg): the matcher's start-up heading search tries headings this far
@@ -214,7 +214,7 @@ class DaemonConfig(_Strict):
     estimates_log: str = ""
     # threads OpenCV may use inside one call (cv2.setNumThreads), 0 = its default, one per core. One saves CPU
     # per frame for the rest of the companion (the terrain back-end, Zenoh, MAVLink) at the same latency with
-    # georef and a few ms more with terrain_lba (``python -m bench latency --opencv-threads N``; README)
+    # georef and a few ms more with terrain_lba (``python -m bench latency --opencv-threads N``; docs/benchmarks.md)
     opencv_threads: Annotated[int, Field(ge=0, le=64)] = 1
 
 

@@ -61,7 +61,7 @@ class EkfOptions:
     # patch: Davison et al., T-PAMI 2007). False: against the last matched keypoint's, which lets a track
     # slide a little per frame onto a neighbour that looks alike. On the 300-run benchmark, paired against
     # False: E lower by 0.059 +- 0.017 / 0.020 +- 0.009 / 0.015 +- 0.010 points visible / thermal / dual,
-    # mean position error by 0.086 / 0.024 / 0.027 m (README)
+    # mean position error by 0.086 / 0.024 / 0.027 m (docs/benchmarks.md)
     anchor_descriptor: bool = True
     # a landmark SIFT did not find inside its gate is searched for with its first patch (MonoSLAM's active
     # search: the patch cut around its keypoint when it was created, warped by the predicted motion, normalised
@@ -86,7 +86,7 @@ class EkfOptions:
     # sigma of the landmark-facet model error, as a fraction of the range: a plane through three landmarks
     # tens of metres apart misses the rough ground under the beam by metres. On the 30-trial benchmark, 0.02
     # left the filter overconfident (position NEES 9.3 / 8.4 / 7.5 visible / thermal / dual, 3 = consistent),
-    # 0.10 gives 4.9 / 3.6 / 3.8 at about the same E (README)
+    # 0.10 gives 4.9 / 3.6 / 3.8 at about the same E (docs/benchmarks.md)
     facet_rel_sigma: float = 0.10
     altimeter_gate_chi2: float = 10.83  # Mahalanobis gate (chi-square, 1 dof, 99.9 %)
     # --- diversity sampling (eq. 8) ---
@@ -100,11 +100,11 @@ class EkfOptions:
     # image let a landmark's keypoint be found again in the next frame more often (longer tracks). On the
     # 300-trial benchmark, paired against 400 / 0.02 for both cameras (thermal's keypoints were contrast-limited,
     # ~300 a frame): E lower by 0.073 +- 0.016 / 0.036 +- 0.010 / 0.033 +- 0.010 points visible / thermal /
-    # dual, SIFT 43 instead of 34 ms per pair (README). The thermal camera was then at its 400 cap (3 of 4
+    # dual, SIFT 43 instead of 34 ms per pair (docs/benchmarks.md). The thermal camera was then at its 400 cap (3 of 4
     # frames sampled on trajectory 1): 800, paired over the 600 trials of seeds 0 and 1, lowered the mean
     # position error by 0.037 +- 0.012 / 0.050 +- 0.012 m thermal and 0.025 +- 0.009 / 0.019 +- 0.009 m dual
     # (E: thermal -0.012 / -0.015, dual -0.005 / -0.002 points), for 14.3-16.5 instead of 19.5-19.7 pairs/s
-    # through the daemon path, measured in turn (README)
+    # through the daemon path, measured in turn (docs/benchmarks.md)
     sift_nfeatures_visible: int = 800
     sift_nfeatures_thermal: int = 800
     sift_octave_layers: int = 3  # Lowe's value

@@ -141,7 +141,7 @@ class TerrainLbaOptions:
     attitude_sigma_rad: float = 0.003
     # the gravity prior's roll / pitch from the autopilot attitude of this many recent frames, carried to the
     # key frame through the VO's rotation since (``VoOptions.gravity_frames``): averages the attitude's
-    # frame-to-frame noise, not its bias; 1 = the key frame's own sample. Paired Table 7 flights: README
+    # frame-to-frame noise, not its bias; 1 = the key frame's own sample. Paired Table 7 flights: docs/benchmarks.md
     gravity_frames: int = 20
     # what of that average's error does not shrink with more frames (rad, 1 sigma): the autopilot's slow
     # error and the VO's rotation error over the averaged frames. The adjustment's prior (and the output
@@ -185,7 +185,7 @@ class TerrainLbaOptions:
     # relief_scales_m: a second local-relief basis (5 m beside 20 m) for reflectance tied to the relief at a
     # smaller scale than the first models (dust in small hollows): such a term left unexplained pulls the
     # joint shift along the sun (``test_joint_shift_needs_the_relief_at_the_reflectance_scale``); paired
-    # scratch flights with and without it: README, terrain SLAM.
+    # scratch flights with and without it: docs/benchmarks.md, terrain SLAM.
     # rs_sweep_deg: the start-up heading search (``BackendOptions.heading_from_matcher``) tries headings
     # within this of the compass's (measured, scene 01, compass 10 deg off: without the sweep the search
     # stays near the compass and the flight never aligns)
@@ -758,7 +758,7 @@ class TerrainLbaEstimator:
         Inverse-variance weights of the two tilts (small angles); the pivot is the ground along the optical
         axis, at the range finder's range or, without one, the DEM's. The recent attitude samples also went
         into the newest key frames' priors, so the two are not quite independent: measured, not derived
-        (README, terrain SLAM)."""
+        (docs/benchmarks.md, terrain SLAM)."""
         down = self.vo.averaged_down() if self._tilt_weight > 0 else None
         if down is None:
             return T_world_cam
