@@ -134,7 +134,7 @@ class TerrainLbaConfig(_Strict):
     min_frames_between_kf: Annotated[int, Field(ge=1)] = 20
     min_features_kf: Annotated[int, Field(ge=1)] = 50
     max_tracked_ratio_kf: Annotated[float, Field(gt=0, le=1)] = 0.9
-    joint_shift: bool = True  # key-frame fixes: shift estimated jointly with the fitted reference (docs/benchmarks.md)
+    joint_shift: bool = True  # key-frame fixes: shift fitted jointly with the reference (docs/benchmarks.md)
     # the scales (m) at which the matcher models reflectance tied to the relief (dust in hollows): its
     # fitted reference has a local-relief image, h - blur(h), per scale. Keep them several DEM cells wide
     relief_scales_m: Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=1, max_length=4)] = [
