@@ -474,6 +474,16 @@ def drift_plot(path: Path, flights: list[tuple[str, dict[str, Any]]]) -> None:
     print(f"wrote {path}")
 
 
+def drift_plot_path(plot: Path | None, json_path: Path | None) -> Path | None:
+    """Where the drift plot goes: ``--plot`` if given, else beside the JSON (``X.json`` -> ``X_drift.png``), so
+    a run with its JSON elsewhere never overwrites the committed plot; no plot when neither is given."""
+    if plot is not None:
+        return plot
+    if json_path is not None:
+        return json_path.with_name(f"{json_path.stem}_drift.png")
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     p = parser("terrain_slam", __doc__.splitlines()[0])
     p.add_argument("--circular-s", type=float, default=None, help="circular flight duration")
@@ -482,7 +492,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenes", default=None, help="comma-separated scene ids for Table 7 (default all nine)")
     p.add_argument("--tables", default="4,5,7,t", help="which tables to run (t = per-frame timing run)")
     p.add_argument("--timing-s", type=float, default=None, help="timing run duration")
-    p.add_argument("--plot", type=Path, default=Path("bench/results/terrain_slam_drift.png"))
+    p.add_argument(
+        "--plot",
+        type=Path,
+        default=None,
+        help="error against distance flown, as PNG (default: beside --json, NAME_drift.png; none without --json)",
+    )
     p.add_argument(
         "--no-joint-shift",
         action="store_true",
@@ -640,9 +655,10 @@ def main(argv: list[str] | None = None) -> int:
     plot_flights += [(f"{s} {k}", r) for (s, k), r in flights.items() if not (k == "circular" and s == "08")][
         :2
     ]
-    if plot_flights:
-        drift_plot(a.plot, plot_flights)
-        results["drift_plot"] = str(a.plot)
+    plot_path = drift_plot_path(a.plot, a.json)
+    if plot_flights and plot_path is not None:
+        drift_plot(plot_path, plot_flights)
+        results["drift_plot"] = str(plot_path)
     results["wall_s"] = time.perf_counter() - t_start
     write_json(a.json, results)
     return 0
