@@ -273,6 +273,10 @@ class ReplayOptions:
     max_gap_s: float = 2.0
     """A jump of the pacing time larger than this (either way: a driver restart, a bogus stamp) is not
     waited for: the schedule restarts at that message (counted in ``time_jumps``)."""
+    lossless: bool = True
+    """Publish with Zenoh's BLOCK congestion control: when the link is busy a frame waits instead of being
+    dropped, so a bench replay delivers every recorded frame (late rather than never; the pacing catches
+    up). False = DROP, Zenoh's default and a live camera's behaviour, for testing how a companion copes."""
 
 
 @dataclass
@@ -365,7 +369,13 @@ class BagReplayer:
                 log.warning("replay: no image topic %s in %s", ", ".join(missing), self.path)
             if not conns:
                 return res
-            pubs = {c.topic: self.session.declare_publisher(key_from_topic(c.topic)) for c in conns}
+            congestion = zenoh.CongestionControl.BLOCK if opts.lossless else zenoh.CongestionControl.DROP
+            pubs = {
+                c.topic: self.session.declare_publisher(
+                    key_from_topic(c.topic), congestion_control=congestion
+                )
+                for c in conns
+            }
             try:
                 self._wait_subscribers(pubs)
                 self._play(reader, conns, pubs, res, progress)
@@ -695,6 +705,11 @@ def add_replay_parser(sub: Any) -> None:
     p.add_argument(
         "--wait-subscribers", type=float, default=5.0, help="s to wait for a subscriber (default 5)"
     )
+    p.add_argument(
+        "--lossy",
+        action="store_true",
+        help="let Zenoh drop frames when the link is busy, as a live camera does (default: wait, lose none)",
+    )
     add_zenoh_args(p, listen=["tcp/127.0.0.1:7447"])
     p.set_defaults(func=cmd_replay)
 
@@ -798,6 +813,7 @@ def cmd_replay(a: Any) -> int:
         restamp=a.restamp,
         topics=tuple(a.topic),
         wait_subscribers_s=a.wait_subscribers,
+        lossless=not a.lossy,
     )
     session = open_zenoh_from_args(a)
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
