@@ -181,11 +181,46 @@ def test_key_frame_height_averages_the_altimeter_samples_since_the_previous_key_
             r = true_range + rng.normal(0.0, 1.0)
             est.on_altimeter(AltimeterSample(k * 50_000, r))
             errors_single.append(abs(dem.height_above_ground(p, R, r) - 100.0))
-            est._altitude_offsets(k * 50_000, p, R)
+            est._gather_altimeter(k * 50_000, p, R)
         agl = est._key_frame_agl(p)
     finally:
         est.close()
     assert agl is not None and abs(agl - 100.0) < 0.5 * float(np.mean(errors_single)), (agl, errors_single)
+
+
+def test_key_frame_height_keeps_the_samples_from_before_a_correction_moved_with_the_map() -> None:
+    # ten altimeter samples taken while the map sat 0.4 m high and 0.6 m west, then an adjustment moves the
+    # map (and the current pose) onto the truth, then ten more samples: the key frame's height above ground
+    # is the trimmed mean over all twenty, each as if taken at its corrected pose
+    from scipy.stats import trim_mean
+
+    from companion.geometry import rot_from_rpy
+    from companion.georef.dem import Dem
+
+    n = 401
+    east = (np.arange(n) - 200) * 1.0
+    dem = Dem(np.tile(0.2 * east, (n, 1)).astype(np.float32), 200.0, -200.0, 1.0)
+    est = TerrainLbaEstimator(
+        TerrainLbaOptions(w_geo=0.0), INTR, R_BODY_CAM_NADIR, dem, Sun.from_degrees(10, 0, 60), np.zeros(3)
+    )
+    try:
+        R = rot_from_rpy(np.radians(3.0), np.radians(-2.0), 0.4)
+        p_true = np.array([5.0, 10.0, -(2.0 + 100.0)])
+        C = np.eye(4)
+        C[:3, 3] = [0.0, 0.6, 0.4]  # the correction: 0.6 m east, 0.4 m down
+        p_before = p_true - C[:3, 3]
+        true_range = dem.beam_range(p_true, R[:, 2])
+        ranges = true_range + np.random.default_rng(5).normal(0.0, 1.0, 20)
+        for k, r in enumerate(ranges):
+            if k == 10:
+                est._move_alt_samples(C)
+            est.on_altimeter(AltimeterSample(k * 50_000, float(r)))
+            est._gather_altimeter(k * 50_000, p_before if k < 10 else p_true, R)
+        agl = est._key_frame_agl(p_true)
+    finally:
+        est.close()
+    want = trim_mean([dem.height_above_ground(p_true, R, float(r)) for r in ranges], 0.1)
+    assert agl is not None and abs(agl - want) < 1e-9, (agl, want)
 
 
 @pytest.mark.parametrize("how", ["killed", "hung"])

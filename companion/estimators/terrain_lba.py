@@ -325,9 +325,11 @@ class TerrainLbaEstimator:
             self._wait_ready()
         self._attitude = SampleHistory()
         self._range = SampleHistory()
-        # altimeter samples not yet turned into altitude offsets, and the offsets since the last key frame
+        # altimeter samples not yet matched to a frame
         self._alt_pending: deque[tuple[int, float]] = deque(maxlen=200)
-        self._alt_offsets: list[float] = []
+        # the altimeter samples since the previous key frame, each with the body pose it was taken at:
+        # (p_body (3,) NED, R_world_body (3, 3), range m); moved with the map by each correction
+        self._alt_samples: list[tuple[np.ndarray, np.ndarray, float]] = []
         self.frame_index = -1
         self.epoch = 0
         self.reset_counter = 0
@@ -381,28 +383,40 @@ class TerrainLbaEstimator:
             self._range.add(s.stamp_us, float(s.range_m))
             self._alt_pending.append((s.stamp_us, float(s.range_m)))
 
-    def _altitude_offsets(self, t_us: int, p_body: np.ndarray, R_world_body: np.ndarray) -> None:
-        """Turn the altimeter samples up to this frame into offsets between the altitude they measure
-        (DEM below + height above it) and the VO's altitude at this frame.
-
-        One sample is noisy (a 1 % range finder: 1 m at 100 m) but the VO's altitude is smooth over a key
-        frame interval, so the key frame's geo-fix gets the mean offset of the ~20 samples since the
-        previous key frame instead of one sample: its height error shrinks about sqrt(20) times."""
+    def _gather_altimeter(self, t_us: int, p_body: np.ndarray, R_world_body: np.ndarray) -> None:
+        """Keep the altimeter samples up to this frame, each with this frame's body pose, for the next key
+        frame's height above ground (``_key_frame_agl``)."""
         lo = t_us - self.opt.altimeter_max_age_us
-        ground = float(self._dem.height_at(p_body[0], p_body[1])[0])
         while self._alt_pending and self._alt_pending[0][0] <= t_us:
             stamp, rng = self._alt_pending.popleft()
-            if stamp < lo or not np.isfinite(ground):
-                continue
-            altitude = ground + self._dem.height_above_ground(p_body, R_world_body, rng)
-            self._alt_offsets.append(altitude + float(p_body[2]))  # altitude minus the VO's (-z)
+            if stamp >= lo:
+                self._alt_samples.append((p_body.copy(), R_world_body.copy(), rng))
+
+    def _move_alt_samples(self, C: np.ndarray) -> None:
+        """An adjustment moved the map (and the current pose) by the world-frame correction ``C`` (4, 4):
+        the samples' poses, taken after the key frame it refers to, follow it as the map's frames do."""
+        R_c, t_c = C[:3, :3], C[:3, 3]
+        self._alt_samples = [(R_c @ p + t_c, R_c @ R, rng) for p, R, rng in self._alt_samples]
 
     def _key_frame_agl(self, p_body: np.ndarray) -> float | None:
-        """Height above the ground below ``p_body`` (a key frame's VO position) from the offsets gathered
-        since the previous key frame (trimmed mean: a DEM hole or a stray echo does not pull it)."""
-        if not self._alt_offsets:
+        """Height above the ground below ``p_body`` (a key frame's VO position) from the altimeter samples
+        since the previous key frame.
+
+        Each sample gives an offset between the altitude it measures (DEM below + height above it) and the
+        VO's altitude at its frame. One sample is noisy (a 1 % range finder: 1 m at 100 m) but the VO's
+        altitude is smooth over a key frame interval, so the key frame takes the trimmed mean offset of the
+        ~20 samples since the previous key frame (a DEM hole or a stray echo does not pull it): its height
+        error shrinks about sqrt(20) times. The samples survive the adjustments applied in between, moved
+        with the map (dropping them there left about half of them)."""
+        offsets = []
+        for p, R, rng in self._alt_samples:
+            ground = float(self._dem.height_at(p[0], p[1])[0])
+            if np.isfinite(ground):
+                altitude = ground + self._dem.height_above_ground(p, R, rng)
+                offsets.append(altitude + float(p[2]))  # altitude minus the VO's (-z)
+        if not offsets:
             return None
-        offset = float(trim_mean(np.asarray(self._alt_offsets), 0.1))
+        offset = float(trim_mean(np.asarray(offsets), 0.1))
         ground = float(self._dem.height_at(p_body[0], p_body[1])[0])
         return None if not np.isfinite(ground) else -float(p_body[2]) + offset - ground
 
@@ -613,8 +627,7 @@ class TerrainLbaEstimator:
             self._fe["backend_stale"] += 1
             return  # the map it refers to was reset
         self._fe["backend_applied"] += 1
-        self._alt_offsets = []  # the map moved: offsets against the old VO altitude no longer apply
-        self.vo.apply_correction(
+        C = self.vo.apply_correction(
             res.newest_kf,
             res.T_align,
             res.kf_ids,
@@ -624,6 +637,7 @@ class TerrainLbaEstimator:
             res.outlier_kf,
             res.outlier_lm,
         )
+        self._move_alt_samples(C)
         self.last_result = res
         self._log_alignment(res.geo)
         note = self._drought.update(str(res.geo.get("status", "")))
@@ -677,7 +691,7 @@ class TerrainLbaEstimator:
         self._wanted = None
         self._kf_frame.clear()
         self._cov_kf = None
-        self._alt_offsets = []
+        self._alt_samples = []
         # the new map starts here on the compass heading again, as well known as the last estimate was
         if self._last_p_body is not None:
             self._gauge_pivot = self._last_p_body.copy()
@@ -717,7 +731,7 @@ class TerrainLbaEstimator:
         if self._last_p_body is not None:
             self._dist_m += float(np.linalg.norm(p_body - self._last_p_body))
         self._last_p_body = p_body
-        self._altitude_offsets(t, p_body, R_wb)
+        self._gather_altimeter(t, p_body, R_wb)
         if st.keyframe_id is not None:
             k = st.keyframe_id
             self._fe["keyframes"] += 1
@@ -725,7 +739,7 @@ class TerrainLbaEstimator:
             for old in [kk for kk in self._kf_dist if kk < k - 4 * self.opt.vo.max_keyframes_kept]:
                 del self._kf_dist[old]
             self._kf_frame = {k: {"image": frame.image, "range_m": rng, "agl_m": self._key_frame_agl(p_body)}}
-            self._alt_offsets = []
+            self._alt_samples = []
             self._wanted = k
         else:
             # the snapshot and the job go out one frame after the key frame, whose own frame already
