@@ -5,6 +5,7 @@ output (inline back-end and worker process alike), and with w_G = 0 no geo-fix i
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -159,9 +160,8 @@ def test_deterministic_inline_and_in_worker_process(flight, lba_run):
         np.testing.assert_allclose(b.p_body_in_world_m, c.p_body_in_world_m, atol=0.05)
 
 
-def test_key_frame_height_averages_the_altimeter_samples_since_the_previous_key_frame() -> None:
-    # a tilted vehicle 100 m over a 20 % slope, a 1 % range finder (1 m sigma): the key frame's height above
-    # ground is the mean over the ~20 samples since the previous key frame, not the last sample alone
+def _over_a_slope() -> tuple[Any, TerrainLbaEstimator, np.ndarray]:
+    """A DEM rising 20 % to the east, an estimator on it (no geo term), and a tilted body attitude."""
     from companion.geometry import rot_from_rpy
     from companion.georef.dem import Dem
 
@@ -171,8 +171,14 @@ def test_key_frame_height_averages_the_altimeter_samples_since_the_previous_key_
     est = TerrainLbaEstimator(
         TerrainLbaOptions(w_geo=0.0), INTR, R_BODY_CAM_NADIR, dem, Sun.from_degrees(10, 0, 60), np.zeros(3)
     )
+    return dem, est, rot_from_rpy(np.radians(3.0), np.radians(-2.0), 0.4)
+
+
+def test_key_frame_height_averages_the_altimeter_samples_since_the_previous_key_frame() -> None:
+    # a tilted vehicle 100 m over a 20 % slope, a 1 % range finder (1 m sigma): the key frame's height above
+    # ground is the mean over the ~20 samples since the previous key frame, not the last sample alone
+    dem, est, R = _over_a_slope()
     try:
-        R = rot_from_rpy(np.radians(3.0), np.radians(-2.0), 0.4)
         p = np.array([5.0, 10.0, -(2.0 + 100.0)])  # ground at east 10 m is 2 m high
         true_range = dem.beam_range(p, R[:, 2])
         rng = np.random.default_rng(3)
@@ -194,17 +200,8 @@ def test_key_frame_height_keeps_the_samples_from_before_a_correction_moved_with_
     # is the trimmed mean over all twenty, each as if taken at its corrected pose
     from scipy.stats import trim_mean
 
-    from companion.geometry import rot_from_rpy
-    from companion.georef.dem import Dem
-
-    n = 401
-    east = (np.arange(n) - 200) * 1.0
-    dem = Dem(np.tile(0.2 * east, (n, 1)).astype(np.float32), 200.0, -200.0, 1.0)
-    est = TerrainLbaEstimator(
-        TerrainLbaOptions(w_geo=0.0), INTR, R_BODY_CAM_NADIR, dem, Sun.from_degrees(10, 0, 60), np.zeros(3)
-    )
+    dem, est, R = _over_a_slope()
     try:
-        R = rot_from_rpy(np.radians(3.0), np.radians(-2.0), 0.4)
         p_true = np.array([5.0, 10.0, -(2.0 + 100.0)])
         C = np.eye(4)
         C[:3, 3] = [0.0, 0.6, 0.4]  # the correction: 0.6 m east, 0.4 m down
