@@ -328,7 +328,8 @@ class TerrainLbaEstimator:
         # altimeter samples not yet matched to a frame
         self._alt_pending: deque[tuple[int, float]] = deque(maxlen=200)
         # the altimeter samples since the previous key frame, each with the body pose it was taken at:
-        # (p_body (3,) NED, R_world_body (3, 3), range m); moved with the map by each correction
+        # (p_body (3,) NED, the body's down axis in the world (3,), range m); moved with the map by each
+        # correction
         self._alt_samples: list[tuple[np.ndarray, np.ndarray, float]] = []
         self.frame_index = -1
         self.epoch = 0
@@ -390,13 +391,13 @@ class TerrainLbaEstimator:
         while self._alt_pending and self._alt_pending[0][0] <= t_us:
             stamp, rng = self._alt_pending.popleft()
             if stamp >= lo:
-                self._alt_samples.append((p_body.copy(), R_world_body.copy(), rng))
+                self._alt_samples.append((p_body.copy(), R_world_body[:, 2].copy(), rng))
 
     def _move_alt_samples(self, C: np.ndarray) -> None:
         """An adjustment moved the map (and the current pose) by the world-frame correction ``C`` (4, 4):
         the samples' poses, taken after the key frame it refers to, follow it as the map's frames do."""
         R_c, t_c = C[:3, :3], C[:3, 3]
-        self._alt_samples = [(R_c @ p + t_c, R_c @ R, rng) for p, R, rng in self._alt_samples]
+        self._alt_samples = [(R_c @ p + t_c, R_c @ d, rng) for p, d, rng in self._alt_samples]
 
     def _key_frame_agl(self, p_body: np.ndarray) -> float | None:
         """Height above the ground below ``p_body`` (a key frame's VO position) from the altimeter samples
@@ -408,15 +409,17 @@ class TerrainLbaEstimator:
         ~20 samples since the previous key frame (a DEM hole or a stray echo does not pull it): its height
         error shrinks about sqrt(20) times. The samples survive the adjustments applied in between, moved
         with the map (dropping them there left about half of them)."""
-        offsets = []
-        for p, R, rng in self._alt_samples:
-            ground = float(self._dem.height_at(p[0], p[1])[0])
-            if np.isfinite(ground):
-                altitude = ground + self._dem.height_above_ground(p, R, rng)
-                offsets.append(altitude + float(p[2]))  # altitude minus the VO's (-z)
-        if not offsets:
+        if not self._alt_samples:
             return None
-        offset = float(trim_mean(np.asarray(offsets), 0.1))
+        p = np.stack([s[0] for s in self._alt_samples])
+        down = np.stack([s[1] for s in self._alt_samples])
+        rng = np.array([s[2] for s in self._alt_samples])
+        altitude = self._dem.height_at(p[:, 0], p[:, 1]) + self._dem.heights_above_ground(p, down, rng)
+        offsets = altitude + p[:, 2]  # altitude minus the VO's (-z)
+        offsets = offsets[np.isfinite(offsets)]  # no DEM below: no altitude
+        if not offsets.size:
+            return None
+        offset = float(trim_mean(offsets, 0.1))
         ground = float(self._dem.height_at(p_body[0], p_body[1])[0])
         return None if not np.isfinite(ground) else -float(p_body[2]) + offset - ground
 

@@ -121,11 +121,18 @@ class Dem:
         raster) the cosine term alone."""
         down = np.asarray(R_world_body, float)[:, 2]
         p = np.asarray(p_world, float)
-        h_vert = float(range_m) * float(down[2])
-        hit = p + float(range_m) * down
-        dh = self.height_at(np.array([hit[0], p[0]]), np.array([hit[1], p[1]]))
-        step = float(dh[0] - dh[1])
-        return h_vert + step if np.isfinite(step) else h_vert
+        return float(self.heights_above_ground(p[None], down[None], np.array([float(range_m)]))[0])
+
+    def heights_above_ground(self, p_world: np.ndarray, down: np.ndarray, range_m: np.ndarray) -> np.ndarray:
+        """``height_above_ground`` for many samples at once: p_world (N, 3) NED, down (N, 3) the body's down
+        axis in the world (R_world_body[:, 2]), range_m (N,); returns (N,) metres."""
+        p = np.asarray(p_world, float).reshape(-1, 3)
+        d = np.asarray(down, float).reshape(-1, 3)
+        r = np.asarray(range_m, float).reshape(-1)
+        h_vert = r * d[:, 2]
+        hit = p + r[:, None] * d
+        step = self.height_at(hit[:, 0], hit[:, 1]) - self.height_at(p[:, 0], p[:, 1])
+        return h_vert + np.where(np.isfinite(step), step, 0.0)
 
     def beam_range(self, p_world: np.ndarray, direction: np.ndarray, max_range_m: float = 1000.0) -> float:
         """Distance from ``p_world`` (NED) along the unit ``direction`` (NED) to the first surface hit, as a
