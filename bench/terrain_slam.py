@@ -235,6 +235,7 @@ def run_flight(
     distance = traj.distance_m()
     out: dict[str, Any] = {}
     axes = sim.true_axes() if any(e.geo_fixes for e in est.values()) else None  # once for every method
+    yaw_true = np.array([rpy_from_rot(st.R_world_body)[2] for st in sim.states])
     for n, e in est.items():
         counters = e.backend_counters()
         records = list(e.geo_fixes)
@@ -270,7 +271,7 @@ def run_flight(
         res["backend"] = counters
         res["w_geo"] = methods[n].w_geo
         if records and axes is not None:
-            res["geo_fix"] = fix_errors(records, times, p_true, *axes)
+            res["geo_fix"] = fix_errors(records, times, p_true, *axes, yaw_true)
         out[n] = res
     out["_flight"] = {
         "scene": spec.scene_id,
@@ -346,6 +347,7 @@ def fix_errors(
     R_world_cam: np.ndarray,
     p_cam: np.ndarray,
     ground_range_m: np.ndarray,
+    yaw_rad: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """How good the key frames' geo-fixes were, against the truth at their frames.
 
@@ -356,7 +358,12 @@ def fix_errors(
     fix gives at the key frame's estimated attitude (adds height x that attitude's tilt error). Means over
     the fixes the adjustment used, ``bias_ne_m`` the mean ground error vector (north, east);
     ``sigma_m_median`` / ``sigma_m_last``: the horizontal sigma the adjustment gave the fixes (learnt from
-    their scatter, ``BackendOptions.geo_sigma_adapt``) over the flight and at its end (NaN when none was reported)."""
+    their scatter, ``BackendOptions.geo_sigma_adapt``) over the flight and at its end (NaN when none was reported).
+    ``unfollowed_m`` / ``unfollowed_ne_m``: mean horizontal length / vector of what the adjustment did not follow of
+    each used fix (``GeoFixRecord.unfollowed_world``). With ``yaw_rad`` (F,), the true heading at each frame,
+    ``ground_fwd_right_m`` and ``unfollowed_fwd_right_m``: the same means along the vehicle's heading and to
+    its right: a bias that turns with the vehicle (a tilt, a lever, a lag) shows there and averages out in
+    north / east over a circle."""
     used = [r for r in records if r.status in USED_FIX]
     if not used:
         return {"n_used": 0, "n_reported": len(records)}
@@ -370,6 +377,25 @@ def fix_errors(
     ok = np.isfinite(d_g).all(axis=1)
     sig = np.array([r.fix_sigma_m for r in records], float)
     sig = sig[np.isfinite(sig)]
+    d_u = np.stack([r.unfollowed_world for r in used])[:, :2]
+    ok_u = np.isfinite(d_u).all(axis=1)
+    nan2 = [float("nan")] * 2
+    extra: dict[str, Any] = {
+        "unfollowed_m": float(np.linalg.norm(d_u[ok_u], axis=1).mean()) if ok_u.any() else float("nan"),
+        "unfollowed_ne_m": d_u[ok_u].mean(axis=0).tolist() if ok_u.any() else nan2,
+    }
+    if yaw_rad is not None:
+        c, s_ = np.cos(yaw_rad[k]), np.sin(yaw_rad[k])
+
+        def fwd_right(d: np.ndarray, m: np.ndarray) -> list[float]:
+            if not m.any():
+                return nan2
+            f = d[m, 0] * c[m] + d[m, 1] * s_[m]
+            r = -d[m, 0] * s_[m] + d[m, 1] * c[m]
+            return [float(f.mean()), float(r.mean())]
+
+        extra["ground_fwd_right_m"] = fwd_right(d_g, ok)
+        extra["unfollowed_fwd_right_m"] = fwd_right(d_u, ok_u)
     return {
         "n_used": len(used),
         "n_reported": len(records),
@@ -379,6 +405,7 @@ def fix_errors(
         "quality_mean": float(np.mean([r.quality for r in used])),
         "sigma_m_median": float(np.median(sig)) if len(sig) else float("nan"),
         "sigma_m_last": float(sig[-1]) if len(sig) else float("nan"),
+        **extra,
     }
 
 
@@ -395,9 +422,14 @@ FIX_HEAD = [
     "bias E/m",
     "body err/m",
     "fix sigma/m",
+    "unfollowed fwd/m",
+    "unfollowed right/m",
     "APE horiz/m",
 ]
-FIX_TITLE = "terrain_lba's key-frame geo-fixes against the truth (horizontal; means over the fixes used)"
+FIX_TITLE = (
+    "terrain_lba's key-frame geo-fixes against the truth (horizontal; means over the fixes used); unfollowed: "
+    "the fix minus where the adjustment put it, along the heading and to the right"
+)
 
 
 def _fix_row(scene: str, r: dict[str, Any]) -> list[Any]:
@@ -412,6 +444,7 @@ def _fix_row(scene: str, r: dict[str, Any]) -> list[Any]:
         bias[1],
         g.get("body_m", nan),
         g.get("sigma_m_median", nan),
+        *g.get("unfollowed_fwd_right_m", [nan, nan]),
         r.get("horizontal_mean", nan),
     ]
 

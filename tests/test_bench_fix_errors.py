@@ -59,3 +59,37 @@ def test_no_used_fix_reports_counts_only() -> None:
     out = fix_errors([rec], np.zeros(1), np.zeros((1, 3)), np.eye(3)[None], np.zeros((1, 3)), np.ones(1))
     assert out == {"n_used": 0, "n_reported": 1}
     assert np.isnan(rec.ground_fix_world).all()
+
+
+def test_errors_along_the_heading_and_what_the_adjustment_did_not_follow() -> None:
+    """Heading east: a fix 0.1 m north of the true ground point is 0.1 m to the left; the adjustment leaving
+    each fix 0.2 m east of where it put the key frame is 0.2 m forward of it, unfollowed."""
+    n = 20
+    times = np.arange(n) / 15.0
+    R_wc = np.repeat(R_BODY_CAM_NADIR[None], n, axis=0)
+    p_body = np.stack([np.array([0.0, 4.0 * t, -100.0]) for t in times])
+    rng = np.full(n, 100.0)
+    ground = p_body + rng[:, None] * R_wc[:, :, 2]
+    yaw = np.full(n, np.pi / 2)
+    recs = [
+        GeoFixRecord.of(
+            int(round(times[k] * 1e6)),
+            {
+                "status": "accepted",
+                "quality": 0.5,
+                "p_fix_world": p_body[k],
+                "ground_fix_world": ground[k] + [0.1, 0.0, 0.0],
+                "post_residual_m": [0.0, 0.2, 0.05],
+            },
+        )
+        for k in range(0, n, 4)
+    ]
+    recs.append(GeoFixRecord.of(int(round(times[2] * 1e6)), {"status": "accepted", "p_fix_world": p_body[2]}))
+    out = fix_errors(recs, times, p_body, R_wc, p_body.copy(), rng, yaw)
+    assert out["ground_fwd_right_m"] == pytest.approx([0.0, -0.1], abs=1e-9)
+    # the record without a residual (its key frame was not the window's newest) is left out of these
+    assert out["unfollowed_m"] == pytest.approx(0.2, abs=1e-9)
+    assert out["unfollowed_ne_m"] == pytest.approx([0.0, 0.2], abs=1e-9)
+    assert out["unfollowed_fwd_right_m"] == pytest.approx([0.2, 0.0], abs=1e-9)
+    # without the heading, only the north / east means
+    assert "unfollowed_fwd_right_m" not in fix_errors(recs, times, p_body, R_wc, p_body.copy(), rng)

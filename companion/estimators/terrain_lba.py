@@ -71,7 +71,9 @@ class GeoFixRecord:
     by the fix (NED, eq. 18 at the key frame's VO attitude). ground_fix_world: (3,) the ground point the
     fix locates on the optical axis at the altimeter's range (what the adjustment holds; NaN without a
     range). fix_sigma_m: the horizontal sigma the adjustment gave fixes after this key frame (learnt from
-    their scatter, ``BackendOptions.geo_sigma_adapt``; NaN when not reported)."""
+    their scatter, ``BackendOptions.geo_sigma_adapt``; NaN when not reported). unfollowed_world: (3,) the
+    fix's point minus where the adjustment put it (the part of the fix the adjusted key frame did not
+    follow; NaN when the key frame was not the window's newest or the fix was not used)."""
 
     stamp_us: int
     status: str
@@ -79,6 +81,7 @@ class GeoFixRecord:
     p_fix_world: np.ndarray
     ground_fix_world: np.ndarray
     fix_sigma_m: float = float("nan")
+    unfollowed_world: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
 
     @staticmethod
     def of(stamp_us: int, geo: dict) -> GeoFixRecord:
@@ -89,6 +92,7 @@ class GeoFixRecord:
             np.asarray(geo["p_fix_world"], float),
             np.asarray(geo.get("ground_fix_world", [np.nan] * 3), float),
             float(geo.get("fix_sigma_m", float("nan"))),
+            np.asarray(geo.get("post_residual_m", [np.nan] * 3), float),
         )
 
 
