@@ -248,14 +248,10 @@ def run_flight(
             pe_ = np.stack([g[1] for g in got[n]])
             res.update(ape_stats(times, p_true, te, pe_))
             res["t_s"] = te
-            # mean error along the body's heading (forward, right): a body-fixed bias (a tilt the estimator
-            # does not know) turns with the vehicle in a circular flight and averages out in north / east
+            # mean error along the body's heading (forward, right): a tilt the estimator does not know
             k_est = np.clip(np.searchsorted(times, te - 1e-9), 0, len(times) - 1)
-            yaw = np.array([rpy_from_rot(sim.states[k].R_world_body)[2] for k in k_est])
             d_ne = pe_[:, :2] - p_true[k_est, :2]
-            fwd = d_ne[:, 0] * np.cos(yaw) + d_ne[:, 1] * np.sin(yaw)
-            right = -d_ne[:, 0] * np.sin(yaw) + d_ne[:, 1] * np.cos(yaw)
-            res["mean_error_forward_right_m"] = [float(fwd.mean()), float(right.mean())]
+            res["mean_error_forward_right_m"] = mean_forward_right(d_ne, yaw_true[k_est])
             # does the covariance sent with each estimate cover its error (sim_bridge.sim)
             res["covariance_consistency"] = covariance_consistency(d_ne, np.stack([g[2] for g in got[n]]))
             # distance flown (truth) at each estimate, for the drift plot
@@ -340,6 +336,16 @@ USED_FIX = ("accepted", "aligned", "aligned_yaw", "realigned")
 """Back-end outcomes of a key frame whose fix entered the adjustment (``BackendResult.geo``)."""
 
 
+def mean_forward_right(d_ne: np.ndarray, yaw_rad: np.ndarray) -> list[float]:
+    """Mean of horizontal errors d_ne (N, 2; north, east) along the vehicle's heading yaw_rad (N,) and to its
+    right: a body-fixed bias (a tilt, a lever, a lag) turns with the vehicle in a circular flight and
+    averages out in north / east, not here."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    fwd = d_ne[:, 0] * c + d_ne[:, 1] * s
+    right = -d_ne[:, 0] * s + d_ne[:, 1] * c
+    return [float(fwd.mean()), float(right.mean())]
+
+
 def fix_errors(
     records: list[GeoFixRecord],
     times_s: np.ndarray,
@@ -385,17 +391,10 @@ def fix_errors(
         "unfollowed_ne_m": d_u[ok_u].mean(axis=0).tolist() if ok_u.any() else nan2,
     }
     if yaw_rad is not None:
-        c, s_ = np.cos(yaw_rad[k]), np.sin(yaw_rad[k])
-
-        def fwd_right(d: np.ndarray, m: np.ndarray) -> list[float]:
-            if not m.any():
-                return nan2
-            f = d[m, 0] * c[m] + d[m, 1] * s_[m]
-            r = -d[m, 0] * s_[m] + d[m, 1] * c[m]
-            return [float(f.mean()), float(r.mean())]
-
-        extra["ground_fwd_right_m"] = fwd_right(d_g, ok)
-        extra["unfollowed_fwd_right_m"] = fwd_right(d_u, ok_u)
+        extra["ground_fwd_right_m"] = mean_forward_right(d_g[ok], yaw_rad[k][ok]) if ok.any() else nan2
+        extra["unfollowed_fwd_right_m"] = (
+            mean_forward_right(d_u[ok_u], yaw_rad[k][ok_u]) if ok_u.any() else nan2
+        )
     return {
         "n_used": len(used),
         "n_reported": len(records),
