@@ -82,6 +82,11 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
                 heading_from_matcher=t.heading_from_matcher,
                 geo_sigma_adapt=t.fix_sigma_adapt,
                 geo_quality_window=lba_opt.backend.geo_quality_window if t.fix_peak_weighting else 0,
+                lba=replace(
+                    lba_opt.backend.lba,
+                    geo_bias_share=t.fix_bias_share,
+                    geo_bias_corr_kf=t.fix_bias_corr_keyframes,
+                ),
             ),
         )
         return TerrainLbaEstimator(

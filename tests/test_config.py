@@ -136,6 +136,8 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         "gravity_frames": 5,
         "attitude_floor_sigma_rad": 0.0,
         "vo_tilt_sigma_rad": 0.002,
+        "fix_bias_share": 0.5,
+        "fix_bias_corr_keyframes": 20.0,
     }
     assert set(changed) == set(TerrainLbaConfig.model_fields)  # a new key must join here
     dem_path = tmp_path / "dem.npz"
@@ -164,6 +166,10 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
                 assert opt.backend.geo_quality_window == 0
             elif key == "heading_search_deg":
                 assert opt.georef.rs_sweep_deg == value
+            elif key == "fix_bias_share":
+                assert lba.geo_bias_share == value
+            elif key == "fix_bias_corr_keyframes":
+                assert lba.geo_bias_corr_kf == value
             elif key == "compass_sigma_deg":
                 assert opt.compass_sigma_rad == pytest.approx(np.radians(value))
                 # the prior the start-up fixes' heading is shrunk towards

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import gtsam
 import numpy as np
 import pytest
-from gtsam.symbol_shorthand import X
+from gtsam.symbol_shorthand import B, X
 from gtsam.utils.numerical_derivative import numericalDerivative11
 
 from companion.constants import R_BODY_CAM_NADIR
@@ -24,6 +24,7 @@ from companion.lba.gauge import gauge_covariance
 from companion.lba.window import (
     LbaOptions,
     WindowProblem,
+    biased_geo_factor,
     body_covariance,
     geo_factor,
     geo_redundancy,
@@ -734,3 +735,40 @@ def test_backend_weights_low_peak_fixes_less():
     for f in be.fixes.values():
         f[6] = 1.0
     assert vf > 2.0 and vf == be._variance_factor(solved)
+
+
+def test_biased_geo_factor_jacobian_matches_numerical_derivative():
+    lever = np.array([0.05, -0.1, 100.0])
+    g = np.array([3.0, -2.0, -2.0])
+    noise = gtsam.noiseModel.Isotropic.Sigma(3, 1.0)
+    f = biased_geo_factor(X(0), B(0), g, lever, noise)
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        pose = gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, 0.5, 3)), rng.normal(0, 5, 3))
+        b = rng.normal(0, 0.5, 3)
+        v = gtsam.Values()
+        v.insert(X(0), pose)
+        v.insert(B(0), b)
+        np.testing.assert_allclose(
+            f.unwhitenedError(v), pose.rotation().matrix() @ lever + pose.translation() + b - g, atol=1e-9
+        )
+        A, _ = f.linearize(v).jacobian()
+
+        def err(p: gtsam.Pose3, b: np.ndarray = b) -> np.ndarray:
+            return p.rotation().matrix() @ lever + p.translation() + b - g
+
+        np.testing.assert_allclose(A[:, :6], numericalDerivative11(err, pose), atol=1e-5)
+        np.testing.assert_allclose(A[:, 6:], np.eye(3), atol=1e-12)
+
+
+def test_fix_bias_model_recovers_the_window_and_reports_horizontal_biases():
+    T, P, ok, ol, opx, rng = _scene(0)
+    prob = _problem(T, P, ok, ol, opx, rng)
+    sol = solve_window(prob, LbaOptions(w_geo=10.0, geo_bias_share=0.5))
+    assert sol.ok and sol.geo_bias is not None
+    assert np.abs(sol.T_world_cam[:, :3, 3] - T[:, :3, 3]).max() < 0.25
+    assert sol.geo_bias.shape == (len(T), 3)
+    assert np.all(sol.geo_bias[prob.anchor] == 0.0)  # anchors carry no fix, so no bias
+    assert np.abs(sol.geo_bias[:, 2]).max() < 0.01  # horizontal only
+    assert np.abs(sol.geo_bias[~prob.anchor, :2]).max() > 1e-4  # the fixes' white noise is partly taken
+    assert np.all(np.isfinite(sol.geo_whitened[~prob.anchor]))

@@ -8,7 +8,10 @@ Cost (eq. 23), written as GTSAM factors:
   between the geo-referenced point and the same point placed by the camera pose (a point fixed in the
   camera frame: the body origin, or the ground point on the optical axis, see ``lba.backend``), weighted
   by the confidence w_G: covariance = the fix's covariance / w_G (w_G = 0 drops the term), behind a robust
-  kernel;
+  kernel; optionally (``geo_bias_share`` > 0) part of each fix's horizontal variance is a bias variable per
+  key frame (``biased_geo_factor``), zero-mean and a random walk from one fixed key frame to the next, so
+  that fixes whose errors are correlated in time count as fewer (each window starts the chain afresh; the
+  whitened residuals reported include the bias, against the fix's whole variance);
 - gravity: ``AttitudeFactorPose3`` per key frame: the down direction measured by the autopilot's
   attitude (roll and pitch; yaw is left free, a compass bias must not enter);
 - key frames outside the window that see the window's points ("anchors", as ORB-SLAM's fixed key
@@ -32,7 +35,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import B, L, X
 
 from companion.ekf.so3 import skew
 from companion.geometry import rpy_from_rot
@@ -66,6 +69,9 @@ class LbaOptions:
     # the vertical sigma (a steep wall's height is uncertain, and its linearisation poor)
     terrain_kernel: str = "huber"
     terrain_kernel_k: float = 1.345
+    geo_bias_share: float = 0.0  # share of each fix's horizontal variance modelled as a bias correlated
+    # between consecutive key frames (a random walk plus a zero-mean prior per key frame); 0 = white fixes
+    geo_bias_corr_kf: float = 10.0  # its correlation length, in key frames
 
 
 @dataclass(frozen=True)
@@ -117,6 +123,7 @@ class WindowSolution:
     error_final: float
     iterations: int
     ok: bool
+    geo_bias: np.ndarray | None = None  # (M, 3) the fixes' bias (``LbaOptions.geo_bias_share``), None = none
 
 
 def robust(base: gtsam.noiseModel.Base, kernel: str, k: float) -> gtsam.noiseModel.Base:
@@ -136,6 +143,27 @@ def geo_factor(
     """Eq. 24 as a GTSAM factor on the camera pose: error = T_world_cam * lever_cam - geo_p_world, the x, y, z
     deviation between the geo-referenced point and where the VO pose puts the same point of the camera."""
     return gtsam.GPSFactorArm(key, np.asarray(geo_p_world, float), np.asarray(lever_cam, float), noise)
+
+
+def biased_geo_factor(
+    key: int, bias_key: int, geo_p_world: np.ndarray, lever_cam: np.ndarray, noise: gtsam.noiseModel.Base
+) -> gtsam.NonlinearFactor:
+    """``geo_factor`` with the fix's correlated bias b (a Point3 variable): error = T_world_cam * lever_cam + b
+    - geo_p_world. Written by hand as a Python ``CustomFactor`` (one callback per fix and iteration): GTSAM
+    has no factor of a pose and a point of this form."""
+    g = np.asarray(geo_p_world, float)
+    lever = np.asarray(lever_cam, float)
+
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+        T = v.atPose3(this.keys()[0])
+        b = v.atPoint3(this.keys()[1])
+        R = T.rotation().matrix()
+        if H is not None:
+            H[0] = np.hstack([-R @ skew(lever), R])
+            H[1] = np.eye(3)
+        return R @ lever + T.translation() + b - g
+
+    return gtsam.CustomFactor(noise, [key, bias_key], error)
 
 
 def geo_noise(cov: np.ndarray, w_geo: float, options: LbaOptions) -> gtsam.noiseModel.Base:
@@ -181,13 +209,32 @@ def build_graph(
             graph.add(gtsam.AttitudeFactorPose3(X(i), n_ref, grav, gtsam.Unit3(d)))
     geo_index = [-1] * M
     if options.w_geo > 0:
+        rho = options.geo_bias_share
+        prev = -1
         for i in range(M):
             g = problem.geo_p_world[i]
             if problem.anchor[i] or not np.all(np.isfinite(g)):
                 continue
             geo_index[i] = graph.size()
-            noise = geo_noise(problem.geo_cov[i], options.w_geo, options)
-            graph.add(geo_factor(X(i), g, problem.geo_lever_cam[i], noise))
+            if rho <= 0:
+                noise = geo_noise(problem.geo_cov[i], options.w_geo, options)
+                graph.add(geo_factor(X(i), g, problem.geo_lever_cam[i], noise))
+                continue
+            noise = geo_noise(problem.geo_cov[i] * (1.0 - rho), options.w_geo, options)
+            graph.add(biased_geo_factor(X(i), B(i), g, problem.geo_lever_cam[i], noise))
+            cb = problem.geo_cov[i] * rho / options.w_geo
+            cb = np.diag([cb[0, 0], cb[1, 1], 1e-6])  # horizontal only
+            values.insert(B(i), np.zeros(3))
+            graph.add(gtsam.PriorFactorPoint3(B(i), np.zeros(3), gtsam.noiseModel.Gaussian.Covariance(cb)))
+            if prev >= 0:
+                step = cb * (2.0 / options.geo_bias_corr_kf)
+                step[2, 2] = 1e-6
+                graph.add(
+                    gtsam.BetweenFactorPoint3(
+                        B(prev), B(i), np.zeros(3), gtsam.noiseModel.Gaussian.Covariance(step)
+                    )
+                )
+            prev = i
     if options.terrain_sigma_m > 0 and problem.lm_ground is not None:
         for jj in np.flatnonzero(np.all(np.isfinite(problem.lm_ground), axis=1)):
             graph.add(terrain_factor(L(int(jj)), problem.lm_ground[jj], options))
@@ -254,9 +301,17 @@ def solve_window(problem: WindowProblem, options: LbaOptions = LbaOptions()) -> 
             e2 = np.sum((uv_hat - problem.obs_px) ** 2, axis=1) / options.pixel_sigma_px**2
             inl = (z > 0) & (e2 < options.outlier_chi2)
     geo_w = np.full(M, np.nan)
+    bias = None
+    if options.geo_bias_share > 0:
+        bias = np.zeros((M, 3))
+        for i, gi in enumerate(geo_index):
+            if gi >= 0:
+                bias[i] = result.atPoint3(B(i))
     for i, gi in enumerate(geo_index):
         if gi >= 0:
             r = T[i, :3, :3] @ problem.geo_lever_cam[i] + T[i, :3, 3] - problem.geo_p_world[i]
+            if bias is not None:
+                r = r + bias[i]
             geo_w[i] = float(np.sqrt(r @ np.linalg.solve(problem.geo_cov[i] / options.w_geo, r)))
     cov = np.full((M, 6, 6), np.nan)
     if options.marginals:
@@ -265,7 +320,9 @@ def solve_window(problem: WindowProblem, options: LbaOptions = LbaOptions()) -> 
             marg = gtsam.Marginals(graph, result)
             for i in range(M):
                 cov[i] = marg.marginalCovariance(X(i))
-    return WindowSolution(T, P, cov, inl, geo_w, float(err0), float(graph.error(result)), int(iters), True)
+    return WindowSolution(
+        T, P, cov, inl, geo_w, float(err0), float(graph.error(result)), int(iters), True, bias
+    )
 
 
 def geo_redundancy(
@@ -286,7 +343,10 @@ def geo_redundancy(
         if not np.all(np.isfinite(C)):
             continue
         R, lever = sol.T_world_cam[i, :3, :3], problem.geo_lever_cam[i]
-        r = (R @ lever + sol.T_world_cam[i, :3, 3] - problem.geo_p_world[i])[:2]
+        r = R @ lever + sol.T_world_cam[i, :3, 3] - problem.geo_p_world[i]
+        if sol.geo_bias is not None:
+            r = r + sol.geo_bias[i]
+        r = r[:2]
         # the point R lever + t under the Pose3 tangent (rotation, translation), both in the camera frame
         J = R @ np.hstack([-skew(lever), np.eye(3)])
         P = (J @ C @ J.T)[:2, :2]
