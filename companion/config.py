@@ -157,8 +157,8 @@ class TerrainLbaConfig(_Strict):
     terrain_sigma_horizontal_m: Annotated[float, Field(ge=0)] = 0.5
     # the share of each fix's horizontal variance the adjustment models as a bias that the fixes of
     # neighbouring key frames share (correlation length ``fix_bias_corr_keyframes``), so that a run of fixes
-    # that agree with each other counts as fewer; 0 = independent fixes (the default: 0.5 was better on 22
-    # of 27 replayed Table 7 flights, docs/benchmarks.md "Session 39", not yet run through the benchmark)
+    # that agree with each other counts as fewer. 0 (the default) = independent fixes; 0.5 was better on 22
+    # of 27 replayed Table 7 flights (docs/benchmarks.md, "Session 39"), not yet flown through the benchmark
     fix_bias_share: Annotated[float, Field(ge=0, lt=1)] = 0.0
     fix_bias_corr_keyframes: Annotated[float, Field(gt=0)] = 10.0
     # the autopilot's roll/pitch noise per sample (rad, 1 sigma, frame to frame), the source of the
