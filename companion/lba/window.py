@@ -145,6 +145,22 @@ def geo_factor(
     return gtsam.GPSFactorArm(key, np.asarray(geo_p_world, float), np.asarray(lever_cam, float), noise)
 
 
+def lever_point_jacobian(R: np.ndarray, lever_cam: np.ndarray) -> np.ndarray:
+    """(3, 6) derivative of the world point R lever + t under the Pose3 tangent (rotation, translation),
+    both in the camera frame."""
+    return R @ np.hstack([-skew(lever_cam), np.eye(3)])
+
+
+def geo_residual(
+    problem: WindowProblem, T_world_cam: np.ndarray, geo_bias: np.ndarray | None, i: int
+) -> np.ndarray:
+    """(3,) key frame i's geo residual at the poses T_world_cam: where the pose puts the fix's camera-frame
+    point, plus the fix's bias when modelled, minus the fix."""
+    R = T_world_cam[i, :3, :3]
+    r = R @ problem.geo_lever_cam[i] + T_world_cam[i, :3, 3] - problem.geo_p_world[i]
+    return r if geo_bias is None else r + geo_bias[i]
+
+
 def biased_geo_factor(
     key: int, bias_key: int, geo_p_world: np.ndarray, lever_cam: np.ndarray, noise: gtsam.noiseModel.Base
 ) -> gtsam.NonlinearFactor:
@@ -159,7 +175,7 @@ def biased_geo_factor(
         b = v.atPoint3(this.keys()[1])
         R = T.rotation().matrix()
         if H is not None:
-            H[0] = np.hstack([-R @ skew(lever), R])
+            H[0] = lever_point_jacobian(R, lever)
             H[1] = np.eye(3)
         return R @ lever + T.translation() + b - g
 
@@ -309,9 +325,7 @@ def solve_window(problem: WindowProblem, options: LbaOptions = LbaOptions()) -> 
                 bias[i] = result.atPoint3(B(i))
     for i, gi in enumerate(geo_index):
         if gi >= 0:
-            r = T[i, :3, :3] @ problem.geo_lever_cam[i] + T[i, :3, 3] - problem.geo_p_world[i]
-            if bias is not None:
-                r = r + bias[i]
+            r = geo_residual(problem, T, bias, i)
             geo_w[i] = float(np.sqrt(r @ np.linalg.solve(problem.geo_cov[i] / options.w_geo, r)))
     cov = np.full((M, 6, 6), np.nan)
     if options.marginals:
@@ -342,13 +356,8 @@ def geo_redundancy(
         C = sol.cov[i]
         if not np.all(np.isfinite(C)):
             continue
-        R, lever = sol.T_world_cam[i, :3, :3], problem.geo_lever_cam[i]
-        r = R @ lever + sol.T_world_cam[i, :3, 3] - problem.geo_p_world[i]
-        if sol.geo_bias is not None:
-            r = r + sol.geo_bias[i]
-        r = r[:2]
-        # the point R lever + t under the Pose3 tangent (rotation, translation), both in the camera frame
-        J = R @ np.hstack([-skew(lever), np.eye(3)])
+        r = geo_residual(problem, sol.T_world_cam, sol.geo_bias, int(i))[:2]
+        J = lever_point_jacobian(sol.T_world_cam[i, :3, :3], problem.geo_lever_cam[i])
         P = (J @ C @ J.T)[:2, :2]
         S_inv = np.linalg.inv(problem.geo_cov[i][:2, :2] / w_geo)
         q_sum += min(float(r @ S_inv @ r), q_cap)
