@@ -157,9 +157,9 @@ class TerrainLbaConfig(_Strict):
     terrain_sigma_horizontal_m: Annotated[float, Field(ge=0)] = 0.5
     # the share of each fix's horizontal variance the adjustment models as a bias that the fixes of
     # neighbouring key frames share (correlation length ``fix_bias_corr_keyframes``), so that a run of fixes
-    # that agree with each other counts as fewer. 0 (the default) = independent fixes; 0.5 was better on 22
-    # of 27 replayed Table 7 flights (docs/benchmarks.md, "Session 39"), not yet flown through the benchmark
-    fix_bias_share: Annotated[float, Field(ge=0, lt=1)] = 0.0
+    # that agree with each other counts as fewer. 0 = independent fixes; 0.5 (the default) was better on 22
+    # of 27 replayed Table 7 flights than 0 (docs/benchmarks.md, "Session 39")
+    fix_bias_share: Annotated[float, Field(ge=0, lt=1)] = 0.5
     fix_bias_corr_keyframes: Annotated[float, Field(gt=0)] = 10.0
     # the autopilot's roll/pitch noise per sample (rad, 1 sigma, frame to frame), the source of the
     # adjustment's gravity prior per key frame: at 100 m a tilt error of 0.1 deg moves the camera 0.17 m

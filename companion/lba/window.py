@@ -69,7 +69,7 @@ class LbaOptions:
     # the vertical sigma (a steep wall's height is uncertain, and its linearisation poor)
     terrain_kernel: str = "huber"
     terrain_kernel_k: float = 1.345
-    geo_bias_share: float = 0.0  # share of each fix's horizontal variance modelled as a bias correlated
+    geo_bias_share: float = 0.5  # share of each fix's horizontal variance modelled as a bias correlated
     # between consecutive key frames (a random walk plus a zero-mean prior per key frame); 0 = white fixes
     geo_bias_corr_kf: float = 10.0  # its correlation length, in key frames
 
