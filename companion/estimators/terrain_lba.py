@@ -37,6 +37,7 @@ from typing import Any
 import cv2
 import numpy as np
 from scipy.stats import trim_mean
+from threadpoolctl import threadpool_limits
 
 from companion.estimators.history import SampleHistory
 from companion.geometry import CameraIntrinsics, rot_from_rpy, rpy_from_rot
@@ -260,6 +261,10 @@ def _worker_main(conn: Any, options: BackendOptions, geo_args: tuple | None, ope
     """Worker process: build the back-end, then answer jobs until None. ``opencv_threads``: the parent's
     OpenCV thread count (``daemon.opencv_threads``), which a spawned interpreter does not inherit."""
     cv2.setNumThreads(opencv_threads)
+    # One BLAS thread for the whole worker: OpenBLAS's extra thread spin-waits after each call and, on a
+    # two-core companion, takes the core the per-frame path runs on. Measured (60-s timing flight, scene 08):
+    # per-frame p99 38.4 -> 29.9 ms, Lucas-Kanade p99 24.4 -> 14.6 ms (docs/benchmarks.md, terrain SLAM).
+    threadpool_limits(limits=1, user_api="blas")
     backend = _make_backend(options, geo_args)
     conn.send("ready")
     while True:
