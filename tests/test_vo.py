@@ -207,6 +207,59 @@ def test_odometry_on_rendered_frames(flight):
     assert len(vo.lm) > 100
 
 
+def _snapshot_by_walking_obs(vo: VisualOdometry, window_size: int, max_anchors: int):
+    """The window snapshot written plainly from ``vo.obs`` (point -> {key frame: pixel}): the reference for the
+    array-based ``VisualOdometry.snapshot``."""
+    win = sorted(vo.kfs)[-window_size:]
+    lm_ids = sorted({int(t) for k in win for t in vo.kfs[k].ids if int(t) in vo.lm})
+    older = {k for t in lm_ids for k in vo.obs.get(t, {}) if k not in win and k in vo.kfs}
+    kf_ids = sorted(sorted(older, reverse=True)[:max_anchors]) + win
+    index = {k: i for i, k in enumerate(kf_ids)}
+    kept, obs = [], []
+    for t in lm_ids:
+        o = [(index[k], px) for k, px in vo.obs[t].items() if k in index]
+        if len(o) >= 2:
+            obs += [(i, len(kept), px) for i, px in o]
+            kept.append(t)
+    return kf_ids, kept, obs
+
+
+def test_window_snapshot_equals_the_observation_map_after_outliers_are_dropped(flight):
+    vo = VisualOdometry(VoOptions(), K)
+    for k, (stamp, img, R_att, rng_m, _p, _R) in enumerate(flight):
+        vo.process(img, stamp, R_att, rng_m, flight[0][4] if k == 0 else None)
+    assert len(vo.kfs) >= 4
+    # the adjustment drops some observations as outliers (nothing moves): the snapshot must forget them
+    rng = np.random.default_rng(0)
+    pairs = [(k, int(t)) for k, kf in vo.kfs.items() for t in kf.ids if int(t) in vo.lm]
+    drop = [pairs[i] for i in rng.choice(len(pairs), 40, replace=False)]
+    kf_ids = np.array(sorted(vo.kfs))
+    lm_ids = np.array(sorted(vo.lm))
+    vo.apply_correction(
+        int(kf_ids[-1]),
+        np.eye(4),
+        kf_ids,
+        np.stack([vo.kfs[k].T_world_cam for k in kf_ids]),
+        lm_ids,
+        np.stack([vo.lm[t] for t in lm_ids]),
+        np.array([k for k, _ in drop]),
+        np.array([t for _, t in drop]),
+    )
+    for window, anchors in ((3, 2), (2, 0), (100, 5)):
+        snap = vo.snapshot(window, anchors)
+        ref_kf, ref_lm, ref_obs = _snapshot_by_walking_obs(vo, window, anchors)
+        assert snap.kf_ids.tolist() == ref_kf
+        assert snap.lm_ids.tolist() == ref_lm
+        assert list(zip(snap.obs_kf.tolist(), snap.obs_lm.tolist())) == [(i, j) for i, j, _ in ref_obs]
+        np.testing.assert_array_equal(snap.obs_px, np.array([px for _, _, px in ref_obs]))
+        np.testing.assert_array_equal(snap.p_world, np.stack([vo.lm[t] for t in ref_lm]))
+        assert snap.anchor.tolist() == [k not in sorted(vo.kfs)[-window:] for k in ref_kf]
+        dropped = {(k, t) for k, t in drop}
+        assert not dropped & {
+            (int(snap.kf_ids[i]), int(snap.lm_ids[j])) for i, j in zip(snap.obs_kf, snap.obs_lm)
+        }
+
+
 def test_key_frame_gravity_averages_the_attitude_noise_and_ignores_the_map_tilt():
     """Known answer: frames along a turn, the VO's rotations exact but the whole map tilted 20 mrad, the
     autopilot's roll / pitch with 3 mrad of white noise: 20 frames' average is within the noise over

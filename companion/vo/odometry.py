@@ -67,6 +67,13 @@ class KeyFrame:
     down_cam: np.ndarray  # (3,) gravity in the camera frame from the autopilot's attitude (NaN if none)
     ids: np.ndarray  # (N,) track ids observed here
     px: np.ndarray  # (N, 2) their pixels
+    # (N,) False where the adjustment dropped the observation as an outlier (``VisualOdometry.obs`` no longer
+    # holds it); the window snapshot reads these arrays rather than walking ``obs`` point by point
+    valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    def __post_init__(self) -> None:
+        if len(self.valid) != len(self.ids):
+            self.valid = np.ones(len(self.ids), bool)
 
 
 @dataclass(frozen=True)
@@ -227,44 +234,49 @@ class VisualOdometry:
 
     def snapshot(self, window_size: int, max_anchors: int) -> WindowSnapshot:
         """The last ``window_size`` key frames, the map points they see, and up to ``max_anchors`` older key
-        frames that also see them (held fixed-ish by the adjustment)."""
+        frames that also see them (held fixed-ish by the adjustment). Observations are ordered by point, then
+        key frame; a point needs two of them in the snapshot.
+
+        Built from the key frames' arrays (``ids``, ``px``, ``valid``) with numpy: it runs on the per-frame
+        path (the frame after a key frame), where walking ``obs`` point by point cost 6-12 ms per window."""
         kf_sorted = sorted(self.kfs)
         win = kf_sorted[-window_size:]
         win_set = set(win)
-        lm_ids = sorted({int(t) for k in win for t in self.kfs[k].ids if int(t) in self.lm})
-        outside: dict[int, int] = {}
-        for t in lm_ids:
-            for k in self.obs.get(t, {}):
-                if k not in win_set and k in self.kfs:
-                    outside[k] = outside.get(k, 0) + 1
-        anchors = sorted(outside, reverse=True)[:max_anchors]
+        kfs = [self.kfs[k] for k in kf_sorted]
+        seen = np.unique(np.concatenate([kf.ids for kf in kfs[-window_size:]]))
+        lm_ids = np.array([t for t in seen.tolist() if t in self.lm], np.int64)
+        # every key frame's observations in one array, tagged with the key frame's position in kf_sorted
+        a_t = np.concatenate([kf.ids for kf in kfs]).astype(np.int64)
+        a_pos = np.repeat(np.arange(len(kfs)), [len(kf.ids) for kf in kfs])
+        sees = np.concatenate([kf.valid for kf in kfs]) & np.isin(a_t, lm_ids)
+        n_seen = np.bincount(a_pos[sees], minlength=len(kfs))
+        older = [k for k, n in zip(kf_sorted, n_seen) if k not in win_set and n > 0]
+        anchors = sorted(older, reverse=True)[:max_anchors]
         kf_ids = sorted(anchors) + win
-        kf_index = {k: i for i, k in enumerate(kf_ids)}
-        obs_kf: list[int] = []
-        obs_lm: list[int] = []
-        obs_px: list[np.ndarray] = []
-        keep_lm: list[int] = []
-        for t in lm_ids:
-            o = [(kf_index[k], px) for k, px in self.obs[t].items() if k in kf_index]
-            if len(o) < 2:
-                continue
-            j = len(keep_lm)
-            keep_lm.append(t)
-            for i, px in o:
-                obs_kf.append(i)
-                obs_lm.append(j)
-                obs_px.append(px)
+        slot = np.full(len(kfs), -1, np.int64)  # position in kf_sorted -> index in kf_ids (-1: not taken)
+        pos_of = {k: i for i, k in enumerate(kf_sorted)}
+        slot[[pos_of[k] for k in kf_ids]] = np.arange(len(kf_ids))
+        m = sees & (slot[a_pos] >= 0)
+        o_kf = slot[a_pos[m]]
+        o_px = np.concatenate([kf.px for kf in kfs]).reshape(-1, 2)[m]
+        o_j = np.searchsorted(lm_ids, a_t[m])
+        keep = np.bincount(o_j, minlength=len(lm_ids)) >= 2
+        new_j = np.cumsum(keep) - 1
+        m = keep[o_j]
+        o_kf, o_j, o_px = o_kf[m], new_j[o_j[m]], o_px[m]
+        order = np.lexsort((o_kf, o_j))  # by point, then key frame (the key frames are in id order)
+        keep_lm = lm_ids[keep]
         anchor = np.array([k not in win_set for k in kf_ids], bool)
         return WindowSnapshot(
             np.array(kf_ids, np.int64),
             np.stack([self.kfs[k].T_world_cam for k in kf_ids]),
             anchor,
             np.stack([self.kfs[k].down_cam for k in kf_ids]),
-            np.array(keep_lm, np.int64),
-            np.stack([self.lm[t] for t in keep_lm]) if keep_lm else np.zeros((0, 3)),
-            np.array(obs_kf, np.int64),
-            np.array(obs_lm, np.int64),
-            np.array(obs_px, float).reshape(-1, 2),
+            keep_lm,
+            np.stack([self.lm[int(t)] for t in keep_lm]) if len(keep_lm) else np.zeros((0, 3)),
+            o_kf[order],
+            o_j[order],
+            np.asarray(o_px[order], float),
         )
 
     def apply_correction(
@@ -319,7 +331,9 @@ class VisualOdometry:
         for k, t in zip(outlier_kf, outlier_lm):
             o = self.obs.get(int(t))
             if o is not None:
-                o.pop(int(k), None)
+                if o.pop(int(k), None) is not None and int(k) in self.kfs:
+                    kf = self.kfs[int(k)]
+                    kf.valid[kf.ids == int(t)] = False
                 if len(o) < 2 and int(t) in self.lm:
                     # too few consistent views left: the track goes back to being a candidate
                     del self.lm[int(t)]
@@ -441,6 +455,7 @@ class VisualOdometry:
         if new.any():
             kf.ids = np.concatenate([kf.ids, self._ids[new]])
             kf.px = np.concatenate([kf.px, self._pts[new].astype(float)])
+            kf.valid = np.concatenate([kf.valid, np.ones(int(new.sum()), bool)])
             for t, p in zip(self._ids[new], self._pts[new]):
                 self.obs.setdefault(int(t), {})[k] = np.asarray(p, float)
 
