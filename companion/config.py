@@ -187,6 +187,10 @@ class EkfConfig(_Strict):
     pair_tolerance_ms: Annotated[float, Field(gt=0)] = 5.0
     one_point_ransac: bool = True  # refuse matches the other matches disagree with (Civera et al. 2010)
     ransac_threshold_px: Annotated[float, Field(gt=0)] = 0.5
+    # keypoint position noise per axis, px: the visible camera's, and the thermal camera's (0 = the same);
+    # set from your cameras' matches (a sharper camera's matches weigh more in dual mode)
+    pixel_sigma_px: Annotated[float, Field(gt=0)] = 1.0
+    pixel_sigma_thermal_px: Annotated[float, Field(ge=0)] = 0.0
     # match a landmark against the descriptor it was created with (false: the last matched keypoint's)
     anchor_descriptor: bool = True
     # a landmark SIFT misses is searched for with its first image patch (warped by the predicted motion,

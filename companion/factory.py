@@ -112,6 +112,8 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             diversity_over_map=e.diversity_over_map,
             one_point_ransac=e.one_point_ransac,
             ransac_threshold_px=e.ransac_threshold_px,
+            pixel_sigma_px=e.pixel_sigma_px,
+            pixel_sigma_thermal_px=e.pixel_sigma_thermal_px,
             anchor_descriptor=e.anchor_descriptor,
             patch_cameras=tuple(e.patch_cameras),
             patch_min_score=e.patch_min_score,

@@ -247,7 +247,15 @@ def test_imu_before_the_first_frame_is_bounded():
     assert slam.latest_imu() is not None
 
 
-def test_sparse_landmark_update_equals_the_dense_update():
+def test_pixel_sigma_per_camera():
+    o = EkfOptions(pixel_sigma_px=1.2)
+    assert (o.pixel_sigma("visible"), o.pixel_sigma("thermal")) == (1.2, 1.2)  # 0: the same for both
+    o = EkfOptions(pixel_sigma_px=1.2, pixel_sigma_thermal_px=0.5)
+    assert (o.pixel_sigma("visible"), o.pixel_sigma("thermal")) == (1.2, 0.5)
+
+
+@pytest.mark.parametrize("sigma", [0.8, np.array([0.8, 0.4, 0.8, 0.4])])  # one for all, or per camera
+def test_sparse_landmark_update_equals_the_dense_update(sigma):
     import copy
 
     from companion.ekf.landmarks import initialise, project
@@ -266,16 +274,17 @@ def test_sparse_landmark_update_equals_the_dense_update():
     pr = project(f.y[sel], f.r, f.R_world_body, cam)
     res = rng.normal(0, 1.0, (4, 2))
     a, b = copy.deepcopy(f), copy.deepcopy(f)
-    S = a.landmark_innovation_covariances(sel, pr.H_pose, pr.H_lm, 0.8)
-    a.update_landmarks(sel, pr.H_pose, pr.H_lm, res, 0.8)
+    S = a.landmark_innovation_covariances(sel, pr.H_pose, pr.H_lm, sigma)
+    a.update_landmarks(sel, pr.H_pose, pr.H_lm, res, sigma)
     H = np.zeros((8, b.P.shape[0]))
     for k, i in enumerate(sel):
         H[2 * k : 2 * k + 2, :6] = pr.H_pose[k]
         H[2 * k : 2 * k + 2, b.lm_slice(int(i))] = pr.H_lm[k]
-    S_dense = b.innovation_covariance(H, np.eye(8) * 0.64)
+    R = np.diag(np.repeat(np.broadcast_to(sigma, (4,)) ** 2, 2))
+    S_dense = b.innovation_covariance(H, R)
     for k in range(4):
         np.testing.assert_allclose(S[k], S_dense[2 * k : 2 * k + 2, 2 * k : 2 * k + 2], rtol=1e-10)
-    b.update(H, res.ravel(), np.eye(8) * 0.64)
+    b.update(H, res.ravel(), R)
     np.testing.assert_allclose(a.P, b.P, atol=1e-12)
     np.testing.assert_allclose(a.y, b.y, atol=1e-12)
     np.testing.assert_allclose(a.r, b.r, atol=1e-12)

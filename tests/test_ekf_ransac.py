@@ -45,6 +45,17 @@ def test_low_innovation_inliers_keep_a_clean_batch():
     assert low_innovation_inliers(HPHt, r[:0], 0.2, 1.0).shape == (0,)
 
 
+def test_low_innovation_inliers_take_one_sigma_per_match():
+    """Per-match sigmas (two cameras): equal ones give the single-sigma answer; a match whose camera is
+    noisier carries less of the hypothesis it makes, and the set still leaves the outliers out."""
+    outliers = np.array([2, 9])
+    HPHt, r = _linear_batch(3, 20, outliers, 4.0)
+    one = low_innovation_inliers(HPHt, r, 0.2, 1.0)
+    np.testing.assert_array_equal(one, low_innovation_inliers(HPHt, r, np.full(20, 0.2), 1.0))
+    two = low_innovation_inliers(HPHt, r, np.where(np.arange(20) % 2 == 0, 0.4, 0.2), 1.0)
+    assert not two[outliers].any()
+
+
 def test_slam_refuses_matches_the_others_disagree_with():
     """A seventh of each frame's keypoints 4 px off their points: with a loose attitude prediction (a noisy
     gyro) each passes its own gate and the plain filter takes them in; 1-point RANSAC refuses about as many

@@ -46,6 +46,12 @@ IDX_BA = slice(12, 15)
 IDX_BG = slice(15, 18)
 
 
+def pixel_noise_blocks(sigma_px: float | np.ndarray, k: int) -> np.ndarray:
+    """(k,2,2) sigma_i^2 I of k pixel measurements; sigma_px: one for all or (k,) (per camera)."""
+    s2 = np.broadcast_to(np.asarray(sigma_px, float), (k,)) ** 2
+    return s2[:, None, None] * np.eye(2)
+
+
 class InverseDepthEkf:
     """The filter. Mutable: ``propagate``, ``update``, ``add_landmarks``, ``remove_landmarks``.
 
@@ -241,15 +247,15 @@ class InverseDepthEkf:
         return np.concatenate([np.tile(np.arange(6), (len(lm), 1)), lm], axis=1)
 
     def landmark_innovation_covariances(
-        self, lm_index: np.ndarray, H_pose: np.ndarray, H_lm: np.ndarray, sigma_px: float
+        self, lm_index: np.ndarray, H_pose: np.ndarray, H_lm: np.ndarray, sigma_px: float | np.ndarray
     ) -> np.ndarray:
-        """(k,2,2) S_i = H_i P H_i^T + sigma^2 I of one pixel measurement per landmark, from the 12x12 blocks
-        of P that the sparse H_i touches. H_pose, H_lm: (k,2,6)."""
+        """(k,2,2) S_i = H_i P H_i^T + sigma_i^2 I of one pixel measurement per landmark, from the 12x12 blocks
+        of P that the sparse H_i touches. H_pose, H_lm: (k,2,6); sigma_px: one for all or (k,)."""
         self._flush()
         cols = self._landmark_columns(lm_index)
         Pk = self.P[cols[:, :, None], cols[:, None, :]]  # (k,12,12)
         Hk = np.concatenate([H_pose, H_lm], axis=2)  # (k,2,12)
-        return Hk @ Pk @ Hk.transpose(0, 2, 1) + np.eye(2) * sigma_px**2
+        return Hk @ Pk @ Hk.transpose(0, 2, 1) + pixel_noise_blocks(sigma_px, len(lm_index))
 
     def landmark_batch_terms(
         self, lm_index: np.ndarray, H_pose: np.ndarray, H_lm: np.ndarray
@@ -273,18 +279,19 @@ class InverseDepthEkf:
         H_pose: np.ndarray,
         H_lm: np.ndarray,
         residual: np.ndarray,
-        sigma_px: float,
+        sigma_px: float | np.ndarray,
         terms: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """Batch update with one pixel measurement (2 rows) per landmark; same result as ``update`` with the
         dense H, computed from the sparse blocks (``landmark_batch_terms``).
 
-        lm_index: (k,); H_pose, H_lm: (k,2,6); residual: (k,2) z - h. terms: ``landmark_batch_terms`` of
+        lm_index: (k,); H_pose, H_lm: (k,2,6); residual: (k,2) z - h; sigma_px: one or (k,). terms: ``landmark_batch_terms`` of
         these very landmarks on the current state, when the caller has them already (else computed).
         Returns the correction."""
         k = len(lm_index)
         PHt, HPHt = self.landmark_batch_terms(lm_index, H_pose, H_lm) if terms is None else terms
-        return self._correct(PHt, HPHt + np.eye(2 * k) * sigma_px**2, residual.reshape(2 * k))
+        R = np.diag(np.repeat(np.broadcast_to(np.asarray(sigma_px, float), (k,)) ** 2, 2))
+        return self._correct(PHt, HPHt + R, residual.reshape(2 * k))
 
     def innovation_covariance(self, H: np.ndarray, R_meas: np.ndarray) -> np.ndarray:
         """S = H P H^T + R for a candidate measurement (m, m)."""

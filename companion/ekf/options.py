@@ -47,7 +47,9 @@ class EkfOptions:
     initial_tilt_sigma_rad: float = 0.01  # rad, roll and pitch
     initial_yaw_sigma_rad: float = 0.02  # rad
     # --- visual measurements ---
-    pixel_sigma_px: float = 1.0  # px, SIFT keypoint position noise (per axis)
+    pixel_sigma_px: float = 1.0  # px, SIFT keypoint position noise (per axis): the visible camera's
+    # and the thermal camera's (0 = ``pixel_sigma_px``); see ``pixel_sigma``
+    pixel_sigma_thermal_px: float = 0.0
     first_estimate_jacobians: bool = True  # FEJ on landmarks (Huang et al. 2008), see ``ekf.filter``
     one_point_ransac: bool = True  # refuse matches the others disagree with (Civera et al. 2010; ``ransac``)
     # px, a match supports a one-match hypothesis within this distance: about twice the median error of a
@@ -124,6 +126,12 @@ class EkfOptions:
     lost_after_frames: int = 5  # consecutive frames with no visual match before the status is LOST
     lost_position_sigma_m: float = 50.0  # m, largest position sigma still reported OK
     seed: int = 0  # landmark sampling RNG
+
+    def pixel_sigma(self, camera: str) -> float:
+        """A camera's keypoint position noise, px per axis ("visible" or "thermal")."""
+        if camera == "thermal" and self.pixel_sigma_thermal_px > 0:
+            return self.pixel_sigma_thermal_px
+        return self.pixel_sigma_px
 
     def sift_settings(self, camera: str) -> tuple[int, float]:
         """(nfeatures, contrast threshold) of a camera ("visible" or "thermal")."""

@@ -17,15 +17,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from companion.ekf.filter import pixel_noise_blocks
+
 
 def low_innovation_inliers(
-    HPHt: np.ndarray, residual: np.ndarray, sigma_px: float, threshold_px: float
+    HPHt: np.ndarray, residual: np.ndarray, sigma_px: float | np.ndarray, threshold_px: float
 ) -> np.ndarray:
     """The largest set of matches that one match's correction explains.
 
     HPHt: (2k, 2k) H P H^T of the k matches (2 rows each, without measurement noise); residual: (k, 2)
     z - h in pixels. Hypothesis i is the EKF correction by match i alone, dx_i = P H_i^T S_i^-1 r_i with
-    S_i = H_i P H_i^T + sigma^2 I; it moves every predicted pixel by H dx_i = (H P H_i^T) S_i^-1 r_i
+    S_i = H_i P H_i^T + sigma_i^2 I (sigma_px: one or (k,)); it moves every predicted pixel by H dx_i = (H P H_i^T) S_i^-1 r_i
     (first order). Match j supports i when |r_j - H_j dx_i| < threshold_px. Ties go to the smaller sum of
     squared supported residuals. Returns (k,) bool.
     """
@@ -34,7 +36,7 @@ def low_innovation_inliers(
     if k == 0:
         return np.zeros(0, bool)
     M = np.asarray(HPHt, float).reshape(k, 2, k, 2)
-    S_ii = M[np.arange(k), :, np.arange(k), :] + np.eye(2) * sigma_px**2  # (k,2,2)
+    S_ii = M[np.arange(k), :, np.arange(k), :] + pixel_noise_blocks(sigma_px, k)  # (k,2,2)
     a = np.linalg.solve(S_ii, r[:, :, None])[:, :, 0]  # (k,2): S_i^-1 r_i
     shift = np.einsum("jaib,ib->ija", M, a)  # (hyp i, match j, 2): H_j dx_i
     post = r[None, :, :] - shift

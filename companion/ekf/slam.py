@@ -309,7 +309,9 @@ class VisThermalSlam:
                 continue
             # innovation covariances S_i = H_i P H_i^T + R (2x2 each), from the sparse blocks
             gi = idx[vis]
-            S = ekf.landmark_innovation_covariances(gi, proj.H_pose[vis], proj.H_lm[vis], o.pixel_sigma_px)
+            S = ekf.landmark_innovation_covariances(
+                gi, proj.H_pose[vis], proj.H_lm[vis], o.pixel_sigma(cam_name)
+            )
             lm_desc = np.stack([self._desc[int(ekf.lm_id[li])] for li in gi])
             match = match_predicted(
                 proj.uv[vis], S, lm_desc, det, o.gate_chi2, o.max_descriptor_distance, o.descriptor_ratio
@@ -348,7 +350,10 @@ class VisThermalSlam:
         # --- batch update with every camera's matches (one map, eq. 7) ---------------------------
         if rows_lm:
             lm_rows = np.array(rows_lm)
-            accepted = self._update_matches(lm_rows, np.stack(rows_Hp), np.stack(rows_Hl), np.stack(rows_res))
+            sig = np.array([o.pixel_sigma(c) for c in rows_cam])
+            accepted = self._update_matches(
+                lm_rows, np.stack(rows_Hp), np.stack(rows_Hl), np.stack(rows_res), sig
+            )
             for li, cam_name, ok, by_patch in zip(lm_rows, rows_cam, accepted, rows_patch):
                 if ok:
                     self._misses[int(ekf.lm_id[li])] = 0
@@ -422,8 +427,11 @@ class VisThermalSlam:
                 found[int(k)] = uv
         return found
 
-    def _update_matches(self, lm: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, res: np.ndarray) -> np.ndarray:
-        """EKF update with the gated matches of every camera (k of them); returns (k,) bool, the ones used.
+    def _update_matches(
+        self, lm: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, res: np.ndarray, sig: np.ndarray
+    ) -> np.ndarray:
+        """EKF update with the gated matches of every camera (k of them, sig: (k,) their cameras' pixel
+        sigmas); returns (k,) bool, the ones used.
 
         Without ``one_point_ransac`` all of them, in one batch. With it (``ransac``): the low-innovation
         inliers in a first batch, then the others that pass their gate again against the corrected state
@@ -433,14 +441,14 @@ class VisThermalSlam:
         o = self.opts
         k = len(lm)
         if not o.one_point_ransac or k < o.ransac_min_matches:
-            ekf.update_landmarks(lm, Hp, Hl, res, o.pixel_sigma_px)
+            ekf.update_landmarks(lm, Hp, Hl, res, sig)
             return np.ones(k, bool)
         PHt, HPHt = ekf.landmark_batch_terms(lm, Hp, Hl)
-        low = low_innovation_inliers(HPHt, res, o.pixel_sigma_px, o.ransac_threshold_px)
+        low = low_innovation_inliers(HPHt, res, sig, o.ransac_threshold_px)
         # the first batch's terms are the rows / columns of the low-innovation ones (no second P H^T)
         rows = np.flatnonzero(np.repeat(low, 2))
         terms = (PHt[:, rows], HPHt[np.ix_(rows, rows)])
-        dx = ekf.update_landmarks(lm[low], Hp[low], Hl[low], res[low], o.pixel_sigma_px, terms)
+        dx = ekf.update_landmarks(lm[low], Hp[low], Hl[low], res[low], sig[low], terms)
         accepted = low.copy()
         rest = np.flatnonzero(~low)
         if len(rest):
@@ -452,11 +460,11 @@ class VisThermalSlam:
                 - np.einsum("kij,j->ki", Hp[rest], dx[:6])
                 - np.einsum("kij,kj->ki", Hl[rest], lm_dx)
             )
-            S2 = ekf.landmark_innovation_covariances(lm[rest], Hp[rest], Hl[rest], o.pixel_sigma_px)
+            S2 = ekf.landmark_innovation_covariances(lm[rest], Hp[rest], Hl[rest], sig[rest])
             chi2 = np.einsum("ki,ki->k", r2, np.linalg.solve(S2, r2[:, :, None])[:, :, 0])
             high = rest[chi2 <= o.gate_chi2]
             if len(high):
-                ekf.update_landmarks(lm[high], Hp[high], Hl[high], r2[chi2 <= o.gate_chi2], o.pixel_sigma_px)
+                ekf.update_landmarks(lm[high], Hp[high], Hl[high], r2[chi2 <= o.gate_chi2], sig[high])
                 accepted[high] = True
         self.counters.ransac_rejected += int(k - accepted.sum())
         return accepted
@@ -541,7 +549,7 @@ class VisThermalSlam:
         uv = det.uv[sel]
         rho0, sigma_rho = self._depth_prior(uv, cam)
         y, J_pose, J_uv = lmk.initialise(uv, rho0, ekf.r, ekf.R_world_body, cam)
-        ids = ekf.add_landmarks(y, J_pose, J_uv, o.pixel_sigma_px, sigma_rho, ci)
+        ids = ekf.add_landmarks(y, J_pose, J_uv, o.pixel_sigma(cam_name), sigma_rho, ci)
         image = det.image if cam_name in o.patch_cameras else None
         if image is not None:
             R_wc, p_cam = camera_pose(ekf.R_world_body, ekf.r, cam.R_body_cam, cam.p_cam_in_body)
