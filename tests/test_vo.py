@@ -215,7 +215,8 @@ def _snapshot_by_walking_obs(vo: VisualOdometry, window_size: int, max_anchors: 
     older = {k for t in lm_ids for k in vo.obs.get(t, {}) if k not in win and k in vo.kfs}
     kf_ids = sorted(sorted(older, reverse=True)[:max_anchors]) + win
     index = {k: i for i, k in enumerate(kf_ids)}
-    kept, obs = [], []
+    kept: list[int] = []
+    obs: list[tuple[int, int, object]] = []
     for t in lm_ids:
         o = [(index[k], px) for k, px in vo.obs[t].items() if k in index]
         if len(o) >= 2:
