@@ -203,6 +203,10 @@ class EkfConfig(_Strict):
     sift_nfeatures_thermal: Annotated[int, Field(ge=10, le=5000)] = 800
     sift_contrast_threshold_visible: Annotated[float, Field(gt=0, lt=1)] = 0.02
     sift_contrast_threshold_thermal: Annotated[float, Field(gt=0, lt=1)] = 0.005
+    # the altimeter (DISTANCE_SENSOR): its range noise, m, 1 sigma (from the datasheet), and the model error of
+    # the plane through three landmarks it is compared with, as a fraction of the range (rough ground wants more)
+    altimeter_sigma_m: Annotated[float, Field(gt=0)] = 0.1
+    facet_rel_sigma: Annotated[float, Field(gt=0, le=1)] = 0.10
 
 
 class EstimatorConfig(_Strict):

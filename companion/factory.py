@@ -121,6 +121,8 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             sift_nfeatures_thermal=e.sift_nfeatures_thermal,
             sift_contrast_threshold_visible=e.sift_contrast_threshold_visible,
             sift_contrast_threshold_thermal=e.sift_contrast_threshold_thermal,
+            altimeter_sigma_m=e.altimeter_sigma_m,
+            facet_rel_sigma=e.facet_rel_sigma,
         )
         planet = cfg.origin.planet if cfg.origin is not None else "europa"
         p0 = cfg.estimator.initial_position_ned_m

@@ -93,6 +93,8 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         "sift_nfeatures_thermal": 300,
         "sift_contrast_threshold_visible": 0.03,
         "sift_contrast_threshold_thermal": 0.01,
+        "altimeter_sigma_m": 0.3,
+        "facet_rel_sigma": 0.2,
     }
     assert set(changed) | {"pair_tolerance_ms"} == set(EkfConfig.model_fields)  # a new key must join here
     cfg = parse_config(
