@@ -203,9 +203,16 @@ class EkfConfig(_Strict):
     sift_nfeatures_thermal: Annotated[int, Field(ge=10, le=5000)] = 800
     sift_contrast_threshold_visible: Annotated[float, Field(gt=0, lt=1)] = 0.02
     sift_contrast_threshold_thermal: Annotated[float, Field(gt=0, lt=1)] = 0.005
-    # the altimeter (DISTANCE_SENSOR): its range noise, m, 1 sigma (from the datasheet), and the model error of
-    # the plane through three landmarks it is compared with, as a fraction of the range (rough ground wants more)
+    # the altimeter (DISTANCE_SENSOR): its range noise, m, 1 sigma (from the datasheet). The range is compared
+    # with the plane through three landmarks around the beam; that plane's error is a state drawn afresh for
+    # each new plane (this fraction of the range, 1 sigma) that decays with tau (s), plus a white part (this
+    # fraction of the range: the ground under the moving beam). Rough ground wants larger fractions.
     altimeter_sigma_m: Annotated[float, Field(gt=0)] = 0.1
+    facet_error_state: bool = True
+    facet_error_rel_sigma: Annotated[float, Field(gt=0, le=1)] = 0.02
+    facet_error_tau_s: Annotated[float, Field(ge=0)] = 2.0
+    altimeter_white_rel_sigma: Annotated[float, Field(ge=0, le=1)] = 0.005
+    # facet_error_state = false: the plane's error taken as white, this fraction of the range
     facet_rel_sigma: Annotated[float, Field(gt=0, le=1)] = 0.10
 
 

@@ -122,6 +122,10 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             sift_contrast_threshold_visible=e.sift_contrast_threshold_visible,
             sift_contrast_threshold_thermal=e.sift_contrast_threshold_thermal,
             altimeter_sigma_m=e.altimeter_sigma_m,
+            facet_error_state=e.facet_error_state,
+            facet_error_rel_sigma=e.facet_error_rel_sigma,
+            facet_error_tau_s=e.facet_error_tau_s,
+            altimeter_white_rel_sigma=e.altimeter_white_rel_sigma,
             facet_rel_sigma=e.facet_rel_sigma,
         )
         planet = cfg.origin.planet if cfg.origin is not None else "europa"

@@ -94,6 +94,10 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         "sift_contrast_threshold_visible": 0.03,
         "sift_contrast_threshold_thermal": 0.01,
         "altimeter_sigma_m": 0.3,
+        "facet_error_state": False,
+        "facet_error_rel_sigma": 0.03,
+        "facet_error_tau_s": 1.0,
+        "altimeter_white_rel_sigma": 0.01,
         "facet_rel_sigma": 0.2,
     }
     assert set(changed) | {"pair_tolerance_ms"} == set(EkfConfig.model_fields)  # a new key must join here

@@ -47,7 +47,7 @@ def _fly(
     ekf = slam.ekf
     assert ekf is not None
     dx = np.random.default_rng(seed + 1000).multivariate_normal(np.zeros(9), ekf.P[:9, :9])
-    ekf._inject(-np.concatenate([dx, np.zeros(9)]))
+    ekf._inject(-np.concatenate([dx, np.zeros(ekf.vdim - 9)]))
     rng = np.random.default_rng(seed + 2000)
     t_frames = np.arange(0.5, traj.t1_s, 1.0 / cam_hz)
     t_alt = np.arange(0.05, traj.t1_s, 0.1)
@@ -187,7 +187,7 @@ def _noiseless_frames(opts: EkfOptions, t_end_s: float):
 def test_landmark_budget_and_bookkeeping(mode):
     for slam, pose in _noiseless_frames(EkfOptions(mode=mode, max_landmarks_per_camera=12, seed=0), 7.0):
         ekf = slam.ekf
-        assert ekf.P.shape == (18 + 6 * ekf.n_landmarks,) * 2
+        assert ekf.P.shape == (19 + 6 * ekf.n_landmarks,) * 2  # the vehicle, the facet error, the landmarks
         assert len(ekf.y_first) == len(ekf.lm_id) == ekf.n_landmarks
         for ci, c in enumerate(slam.camera_names):
             assert pose.n_landmarks[c] == int(np.sum(ekf.lm_cam == ci)) <= 12
@@ -290,22 +290,28 @@ def test_sparse_landmark_update_equals_the_dense_update(sigma):
     np.testing.assert_allclose(a.r, b.r, atol=1e-12)
 
 
-@pytest.mark.parametrize("m", [1, 2])
-def test_column_update_equals_the_dense_update(m):
-    """``update_columns`` (the altimeter's path; in-place rank-1 form for one row) = ``update`` with dense H."""
+@pytest.mark.parametrize("m, facet_state", [(1, False), (2, False), (1, True)])
+def test_column_update_equals_the_dense_update(m, facet_state):
+    """``update_columns`` (the altimeter's path; in-place rank-1 form for one row) = ``update`` with dense H,
+    also with the facet error state between the vehicle and the landmarks."""
     import copy
 
     from companion.ekf.landmarks import initialise
 
     rng = np.random.default_rng(5)
     st = straight_flight(duration_s=20.0).state_at(0.0)
-    f = InverseDepthEkf(EkfOptions(), st.p_world, quat_from_rot(st.R_world_body), st.v_world, G)
+    f = InverseDepthEkf(
+        EkfOptions(facet_error_state=facet_state), st.p_world, quat_from_rot(st.R_world_body), st.v_world, G
+    )
+    assert f.vdim == (19 if facet_state else 18)
+    if facet_state:
+        f.reset_facet_error(0.8)
     uv = rng.uniform([20, 20], [620, 460], (6, 2))
     y, Jp, Ju = initialise(uv, np.full(6, 0.01), f.r, f.R_world_body, camera_model())
     f.add_landmarks(y, Jp, Ju, 1.0, np.full(6, 0.003), 0)
     for _ in range(30):
         f.propagate(np.array([0.1, -0.05, -G]), np.array([0.01, 0.0, -0.02]), 0.01)
-    cols = np.r_[0:6, f.lm_slice(2), f.lm_slice(4)]
+    cols = np.r_[0:6, f.lm_slice(2), f.lm_slice(4)] if not facet_state else np.r_[0:6, 18, f.lm_slice(2)]
     Hc = rng.normal(0, 1.0, (m, len(cols)))
     res, Rm = rng.normal(0, 0.1, m), np.eye(m) * 0.05
     a, b = copy.deepcopy(f), copy.deepcopy(f)
@@ -317,6 +323,30 @@ def test_column_update_equals_the_dense_update(m):
     np.testing.assert_allclose(a.P, b.P, atol=1e-12)
     np.testing.assert_allclose(a.y, b.y, atol=1e-12)
     np.testing.assert_allclose(a.r, b.r, atol=1e-12)
+    assert a.facet_c == pytest.approx(b.facet_c, abs=1e-12)
+    assert (a.facet_c != 0.0) == facet_state  # the correction reaches c only when it is a state
+
+
+def test_facet_error_is_a_gauss_markov_state_reset_per_facet():
+    """c keeps its stationary sigma while it decays toward 0 with tau; a new facet makes it independent of the
+    rest of the state again."""
+    st = straight_flight(duration_s=20.0).state_at(0.0)
+    opts = EkfOptions(facet_error_state=True, facet_error_tau_s=2.0)
+    f = InverseDepthEkf(opts, st.p_world, quat_from_rot(st.R_world_body), st.v_world, G)
+    f.reset_facet_error(0.5)
+    H = np.zeros((1, f.vdim))
+    H[0, 2], H[0, 18] = -1.0, 1.0  # a range: minus the height, plus c
+    f.update(H, np.array([0.3]), np.array([[0.01]]))
+    assert f.facet_c > 0 and f.P[18, 2] != 0.0  # c and the height now correlated
+    c0, var0 = f.facet_c, f.P[18, 18]
+    for _ in range(100):  # 1 s
+        f.propagate(np.array([0.0, 0.0, -G]), np.zeros(3), 0.01)
+    assert f.facet_c == pytest.approx(c0 * np.exp(-0.5), rel=1e-9)
+    phi2 = np.exp(-1.0)  # variance: phi^2 var0 + sigma^2 (1 - phi^2), sigma the stationary 0.5 m
+    assert f.P[18, 18] == pytest.approx(phi2 * var0 + 0.25 * (1 - phi2), rel=1e-6)
+    f.reset_facet_error(0.7)
+    assert f.facet_c == 0.0 and f.P[18, 18] == pytest.approx(0.49)
+    assert not np.any(np.delete(f.P[18], 18)) and not np.any(np.delete(f.P[:, 18], 18))
 
 
 def test_facet_reuse_check_follows_the_beam():

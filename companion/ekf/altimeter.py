@@ -6,7 +6,9 @@ along the body down axis, and the filter has no terrain map, so we use the facet
 VIO (Delaune, Bayard, Brockers, "Range-Visual-Inertial Odometry: Scale Observability Without
 Excitation", IEEE RA-L 2021): the three tracked landmarks whose directions, seen from the vehicle,
 enclose the range beam form a plane, and the predicted range is where the beam meets that plane.
-The model error (terrain is not planar between landmarks) is part of the measurement noise.
+The model error (terrain is not planar between landmarks) stays nearly the same from sample to sample while
+a facet lasts; ``slam`` carries it as a state of the filter, new for each facet (``EkfOptions.facet_error_state``),
+or else as white measurement noise.
 """
 
 from __future__ import annotations

@@ -4,7 +4,8 @@ Nominal state: r (3, world NED position of the body), q (4, R_world_body, Hamilt
 v (3, world velocity), omega (3, body angular rate), b_a (3), b_g (3) accelerometer / gyro biases,
 then N inverse-depth landmarks y_i (6 each, see ``landmarks``).
 Error state (Solà's ESKF, local attitude error): dx = (dr, dtheta, dv, domega, db_a, db_g, dy_1..dy_N),
-18 + 6N long; ``P`` is its covariance.
+18 + 6N long; ``P`` is its covariance. With ``EkfOptions.facet_error_state`` the vehicle part has a 19th entry,
+c (m), the error of the altimeter's facet model (see ``slam``), before the landmarks (``InverseDepthEkf.vdim``).
 
 Propagation implements eqs. 1-4 with the IMU as control input:
     r += v dt + a dt^2/2,  v += a dt,  q = q (x) Exp(omega dt),  omega = omega_m - b_g,
@@ -36,7 +37,7 @@ from companion.ekf.options import EkfOptions
 from companion.ekf.so3 import quat_exp, quat_mul, quat_normalised, rot_from_quat, skew
 
 VEHICLE_DIM = 18
-"""Error-state length of the vehicle: dr, dtheta, dv, domega, db_a, db_g."""
+"""Error-state length of the vehicle's motion: dr, dtheta, dv, domega, db_a, db_g."""
 
 IDX_R = slice(0, 3)
 IDX_TH = slice(3, 6)
@@ -44,6 +45,8 @@ IDX_V = slice(6, 9)
 IDX_W = slice(9, 12)
 IDX_BA = slice(12, 15)
 IDX_BG = slice(15, 18)
+IDX_C = 18
+"""Index of the facet model error c, when it is a state (``vdim`` 19)."""
 
 
 def pixel_noise_blocks(sigma_px: float | np.ndarray, k: int) -> np.ndarray:
@@ -80,7 +83,11 @@ class InverseDepthEkf:
         self.lm_cam = np.zeros(0, dtype=int)
         self.lm_id = np.zeros(0, dtype=int)
         self._next_id = 0
-        P = np.zeros((VEHICLE_DIM, VEHICLE_DIM))
+        self.facet_c = 0.0  # m, the facet model error (a state only with facet_error_state)
+        self.facet_c_sigma_m = 0.0  # m, its stationary sigma (set by ``reset_facet_error``)
+        self.vdim = VEHICLE_DIM + (1 if o.facet_error_state else 0)
+        """Error-state length of the vehicle: 18, or 19 with the facet error; landmarks follow it."""
+        P = np.zeros((self.vdim, self.vdim))
         P[IDX_R, IDX_R] = np.eye(3) * o.initial_position_sigma_m**2
         P[IDX_V, IDX_V] = np.eye(3) * o.initial_velocity_sigma_mps**2
         P[IDX_W, IDX_W] = np.eye(3) * (o.gyro_bias_sigma0**2 + 1e-6)
@@ -93,7 +100,7 @@ class InverseDepthEkf:
             o.initial_yaw_sigma_rad**2 - o.initial_tilt_sigma_rad**2
         )
         self.P = P
-        self._Phi = np.eye(VEHICLE_DIM)
+        self._Phi = np.eye(self.vdim)
         self._phi_pending = False
         self._dt_cache: tuple[float, np.ndarray, np.ndarray] = (float("nan"), P, P)  # see _dt_terms
 
@@ -108,11 +115,11 @@ class InverseDepthEkf:
 
     def lm_slice(self, i: int) -> slice:
         """Columns of landmark i in the error state."""
-        s = VEHICLE_DIM + LANDMARK_DIM * i
+        s = self.vdim + LANDMARK_DIM * i
         return slice(s, s + LANDMARK_DIM)
 
     def covariance(self) -> np.ndarray:
-        """The full (18+6N)^2 covariance with the pending propagation applied."""
+        """The full (vdim+6N)^2 covariance with the pending propagation applied."""
         self._flush()
         return self.P
 
@@ -143,21 +150,29 @@ class InverseDepthEkf:
         if o.estimate_imu_bias:
             F[IDX_R, IDX_BA] = (-0.5 * dt * dt) * R
             F[IDX_V, IDX_BA] = -dt * R
-        Pvv = self.P[:VEHICLE_DIM, :VEHICLE_DIM]
-        self.P[:VEHICLE_DIM, :VEHICLE_DIM] = F @ Pvv @ F.T + Q
+        if self.vdim > IDX_C and o.facet_error_tau_s > 0:
+            # first-order Gauss-Markov: c decays toward 0 with time constant tau, stationary sigma kept
+            phi = math.exp(-dt / o.facet_error_tau_s)
+            F[IDX_C, IDX_C] = phi
+            self.facet_c *= phi
+            Q = Q.copy()
+            Q[IDX_C, IDX_C] = self.facet_c_sigma_m**2 * (1.0 - phi * phi)
+        V = self.vdim
+        self.P[:V, :V] = F @ self.P[:V, :V] @ F.T + Q
         if self.n_landmarks:
             self._Phi = F @ self._Phi
             self._phi_pending = True
 
     def _dt_terms(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """(F_dt, Q): the transition's entries that depend on dt only (18,18) and the discrete process noise
-        of one step (18,18): accel white noise -> dv, dr; gyro white noise -> dtheta, domega; bias random
-        walks. Cached for the last dt (the IMU period rarely changes)."""
+        """(F_dt, Q): the transition's entries that depend on dt only (vdim,vdim) and the discrete process noise
+        of one step (vdim,vdim): accel white noise -> dv, dr; gyro white noise -> dtheta, domega; bias random
+        walks (the facet error's entries are set in ``propagate``). Cached for the last dt (the IMU period
+        rarely changes)."""
         if self._dt_cache[0] == dt:
             return self._dt_cache[1], self._dt_cache[2]
         o = self.opts
         I3 = np.eye(3)
-        F = np.eye(VEHICLE_DIM)
+        F = np.eye(self.vdim)
         F[IDX_R, IDX_V] = I3 * dt
         F[IDX_W, IDX_W] = 0.0
         if o.estimate_imu_bias:
@@ -168,7 +183,7 @@ class InverseDepthEkf:
             F[IDX_BG, IDX_BG] = 0.0
         qa = o.accel_noise_density**2 / dt
         qg = o.gyro_noise_density**2 / dt
-        Q = np.zeros((VEHICLE_DIM, VEHICLE_DIM))
+        Q = np.zeros((self.vdim, self.vdim))
         Q[IDX_V, IDX_V] = I3 * (qa * dt * dt)
         Q[IDX_R, IDX_R] = I3 * (qa * 0.25 * dt**4)
         Q[IDX_R, IDX_V] = Q[IDX_V, IDX_R] = I3 * (qa * 0.5 * dt**3)
@@ -184,7 +199,7 @@ class InverseDepthEkf:
     def _flush(self) -> None:
         """Apply the accumulated transition to the vehicle-landmark cross covariance."""
         if self._phi_pending:
-            V = VEHICLE_DIM
+            V = self.vdim
             self.P[:V, V:] = self._Phi @ self.P[:V, V:]
             self.P[V:, :V] = self.P[:V, V:].T
             self._Phi = np.eye(V)
@@ -192,9 +207,9 @@ class InverseDepthEkf:
 
     # ------------------------------------------------------------------ update
     def update(self, H: np.ndarray, residual: np.ndarray, R_meas: np.ndarray) -> np.ndarray:
-        """EKF update with Jacobian H (m, 18+6N), residual z - h (m,), noise covariance R_meas (m, m).
+        """EKF update with Jacobian H (m, vdim+6N), residual z - h (m,), noise covariance R_meas (m, m).
 
-        Returns the applied error-state correction (18+6N,). Joseph-free form, symmetrised.
+        Returns the applied error-state correction (vdim+6N,). Joseph-free form, symmetrised.
         """
         self._flush()
         PHt = self.P @ H.T
@@ -215,7 +230,7 @@ class InverseDepthEkf:
         """``update`` for a Jacobian that is zero outside the error-state columns ``cols`` (c,): H_cols is
         its (m, c) non-zero part. Same result as the dense form, without the (m, n) H and its n^2 products.
 
-        Returns the correction (18+6N,)."""
+        Returns the correction (vdim+6N,)."""
         self._flush()
         cols = np.asarray(cols, int)
         PHt = self.P[:, cols] @ H_cols.T  # (n, m)
@@ -227,7 +242,7 @@ class InverseDepthEkf:
             dx = PHt[:, 0] * (float(residual[0]) / s)
             b = PHt[:, 0] * (1.0 / math.sqrt(s))
             self.P -= np.outer(b, b)
-            V = VEHICLE_DIM
+            V = self.vdim
             self.P[:V, :V] = 0.5 * (self.P[:V, :V] + self.P[:V, :V].T)
             self._inject(dx)
             return dx
@@ -243,7 +258,7 @@ class InverseDepthEkf:
 
     def _landmark_columns(self, lm_index: np.ndarray) -> np.ndarray:
         """(k,12) error-state columns (dr, dtheta, then the landmark's 6) of each landmark's 2-row block."""
-        lm = VEHICLE_DIM + LANDMARK_DIM * np.asarray(lm_index, int)[:, None] + np.arange(LANDMARK_DIM)
+        lm = self.vdim + LANDMARK_DIM * np.asarray(lm_index, int)[:, None] + np.arange(LANDMARK_DIM)
         return np.concatenate([np.tile(np.arange(6), (len(lm), 1)), lm], axis=1)
 
     def landmark_innovation_covariances(
@@ -306,8 +321,10 @@ class InverseDepthEkf:
         if self.opts.estimate_imu_bias:
             self.ba = self.ba + dx[IDX_BA]
             self.bg = self.bg + dx[IDX_BG]
+        if self.vdim > IDX_C:
+            self.facet_c += float(dx[IDX_C])
         if self.n_landmarks:
-            self.y = self.y + dx[VEHICLE_DIM:].reshape(-1, LANDMARK_DIM)
+            self.y = self.y + dx[self.vdim :].reshape(-1, LANDMARK_DIM)
         # Solà's reset Jacobian (I - [dtheta/2]x) is ~I for the small corrections seen here; omitted.
 
     # ------------------------------------------------------------------ landmarks
@@ -360,13 +377,22 @@ class InverseDepthEkf:
             return
         self._flush()
         cols = np.concatenate(
-            [np.arange(VEHICLE_DIM), VEHICLE_DIM + (np.flatnonzero(keep)[:, None] * 6 + np.arange(6)).ravel()]
+            [np.arange(self.vdim), self.vdim + (np.flatnonzero(keep)[:, None] * 6 + np.arange(6)).ravel()]
         )
         self.P = self.P[np.ix_(cols, cols)]
         self.y = self.y[keep]
         self.y_first = self.y_first[keep]
         self.lm_cam = self.lm_cam[keep]
         self.lm_id = self.lm_id[keep]
+
+    def reset_facet_error(self, sigma_m: float) -> None:
+        """A new facet: its model error is independent of the last one's, c = 0 with variance sigma_m^2."""
+        self._flush()
+        self.P[IDX_C, :] = 0.0
+        self.P[:, IDX_C] = 0.0
+        self.P[IDX_C, IDX_C] = sigma_m**2
+        self.facet_c = 0.0
+        self.facet_c_sigma_m = float(sigma_m)
 
     def is_finite(self) -> bool:
         return bool(
@@ -375,6 +401,7 @@ class InverseDepthEkf:
             and np.all(np.isfinite(self.v))
             and np.all(np.isfinite(self.P))
             and np.all(np.isfinite(self.y))
+            and math.isfinite(self.facet_c)
         )
 
     def position_sigma_max_m(self) -> float:

@@ -29,7 +29,7 @@ from companion.ekf.features import (
     reference_patch,
     warp_template,
 )
-from companion.ekf.filter import VEHICLE_DIM, InverseDepthEkf
+from companion.ekf.filter import IDX_C, InverseDepthEkf
 from companion.ekf.options import EkfOptions, cameras_for_mode
 from companion.ekf.ransac import low_innovation_inliers
 from companion.ekf.sampling import budget_bandwidth, sample_new_landmarks
@@ -215,6 +215,7 @@ class VisThermalSlam:
         # the previous facet while its three landmarks are alive, valid and still around the beam; else a
         # new Delaunay selection over the whole map
         idx = None
+        previous = self._facet_ids
         if self._facet_ids is not None:
             # lm_id is increasing (ids are issued in order, deletion keeps the order)
             idx = np.minimum(np.searchsorted(ekf.lm_id, self._facet_ids), ekf.n_landmarks - 1)
@@ -237,18 +238,31 @@ class VisThermalSlam:
             pts = pts_all[sel]
             self._facet_ids = ekf.lm_id[idx].copy()
         fr = facet_range(pts, ekf.r, R, np.zeros(3))
+        o = self.opts
+        if o.facet_error_state and (previous is None or not np.array_equal(previous, ekf.lm_id[idx])):
+            ekf.reset_facet_error(o.facet_error_rel_sigma * range_m)
         if fr is None:
             self.counters.altimeter_no_facet += 1
             return
         J = lmk.to_euclidean_jacobian(ekf.y[idx])  # (3,3,6)
-        # H is non-zero only on the pose (dr, dtheta) and the three facet landmarks: 24 columns
-        cols = np.concatenate([np.arange(6), (VEHICLE_DIM + 6 * idx[:, None] + np.arange(6)).ravel()])
-        H = np.concatenate([fr.H_pose[0]] + [fr.H_points[k] @ J[k] for k in range(len(idx))])[None, :]
-        sigma2 = self.opts.altimeter_sigma_m**2 + (self.opts.facet_rel_sigma * range_m) ** 2
+        # H is non-zero only on the pose (dr, dtheta), the facet error when it is a state (measured = facet
+        # range + c, so +1) and the three facet landmarks: 24 or 25 columns
+        lm_cols = (ekf.vdim + 6 * idx[:, None] + np.arange(6)).ravel()
+        parts = [fr.H_pose[0]] + [fr.H_points[k] @ J[k] for k in range(len(idx))]
+        if ekf.vdim > IDX_C:
+            cols = np.concatenate([np.arange(6), [IDX_C], lm_cols])
+            parts.insert(1, np.ones(1))
+        else:
+            cols = np.concatenate([np.arange(6), lm_cols])
+        H = np.concatenate(parts)[None, :]
+        if o.facet_error_state:  # white part only: the facet's own error is c
+            sigma2 = o.altimeter_sigma_m**2 + (o.altimeter_white_rel_sigma * range_m) ** 2
+        else:
+            sigma2 = o.altimeter_sigma_m**2 + (o.facet_rel_sigma * range_m) ** 2
         Rm = np.array([[sigma2]])
         S = ekf.innovation_covariance_columns(cols, H, Rm)
-        res = np.array([range_m - fr.range_m])
-        if float(res @ np.linalg.solve(S, res)) > self.opts.altimeter_gate_chi2:
+        res = np.array([range_m - (fr.range_m + ekf.facet_c)])
+        if float(res @ np.linalg.solve(S, res)) > o.altimeter_gate_chi2:
             self.counters.altimeter_rejected += 1
             return
         ekf.update_columns(cols, H, res, Rm)
@@ -454,7 +468,7 @@ class VisThermalSlam:
         if len(rest):
             # high-innovation inliers: residuals moved by the correction (first order, H dx), gated with the
             # corrected covariance
-            lm_dx = dx[VEHICLE_DIM:].reshape(-1, lmk.LANDMARK_DIM)[lm[rest]]
+            lm_dx = dx[ekf.vdim :].reshape(-1, lmk.LANDMARK_DIM)[lm[rest]]
             r2 = (
                 res[rest]
                 - np.einsum("kij,j->ki", Hp[rest], dx[:6])
