@@ -25,7 +25,8 @@ from sim_bridge.trajectory import ImuNoise, Trajectory, TrajectoryState
 EUROPA_CAMERA_RATE_HZ = 2.0
 """Default frame-pair rate of the simulated cameras (paper 2 flies at 1 Hz). Measured on this 2-core
 machine with the daemon beside the simulator and other work loading it (load 6-8): a pair renders in
-~80-90 ms alone (bench/results/thermal_ekf.json: render_ms_per_pair 86), but the daemon's SIFT on both
+42-61 ms alone (render_ms_per_pair in the committed bench/results/thermal_ekf*.json; 86 in an older
+run), but the daemon's SIFT on both
 images takes most of the rest. At 4 Hz the camera skipped 20 % of its slots and 36 % of the estimates
 reached the autopilot later than its 500 ms fusion horizon; at 2 Hz it skipped 2 of 120 and 81 % of
 the pairs became accepted estimates. ``--camera-rate 4`` (ArduPilot's minimum external-nav rate) suits
