@@ -50,7 +50,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import json  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
-from dataclasses import replace  # noqa: E402
+from dataclasses import fields, replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -197,18 +197,52 @@ def improvement_bootstrap(
     return out
 
 
-def bench_options(detect_scale: float | None = None, initial_attitude_deg: float | None = None) -> EkfOptions:
-    """``BENCH_OPTIONS`` with another SIFT scale or initial attitude sigma (None: the default)."""
+def parse_option(text: str) -> tuple[str, Any]:
+    """``KEY=VALUE`` of ``--option``: an ``EkfOptions`` field and its value, converted to the field's type
+    (bool as true/false, a tuple as a comma-separated list); ValueError naming what is wrong."""
+    key, sep, raw = text.partition("=")
+    key, raw = key.strip(), raw.strip()
+    kinds = {f.name: str(f.type) for f in fields(EkfOptions)}
+    if not sep or key not in kinds:
+        raise ValueError(f"--option wants KEY=VALUE with KEY an EkfOptions field, got {text!r}")
+    if key in ("mode", "sampling", "seed"):
+        raise ValueError(f"--option {key}: the benchmark sets it per configuration and trial")
+    kind = kinds[key]
+    if kind == "bool":
+        if raw.lower() not in ("true", "false"):
+            raise ValueError(f"--option {key}: true or false, got {raw!r}")
+        return key, raw.lower() == "true"
+    if kind.startswith("tuple"):
+        return key, tuple(x.strip() for x in raw.split(",") if x.strip())
+    try:
+        return key, {"int": int, "float": float, "str": str}[kind](raw)
+    except (KeyError, ValueError):
+        raise ValueError(f"--option {key}: cannot read {raw!r} as {kind}") from None
+
+
+def bench_options(
+    detect_scale: float | None = None,
+    initial_attitude_deg: float | None = None,
+    overrides: tuple[tuple[str, Any], ...] = (),
+) -> EkfOptions:
+    """``BENCH_OPTIONS`` with another SIFT scale or initial attitude sigma (None: the default) and any other
+    fields set (``--option``)."""
     o = BENCH_OPTIONS if detect_scale is None else replace(BENCH_OPTIONS, detect_scale=detect_scale)
     if initial_attitude_deg is not None:
         a = float(np.radians(initial_attitude_deg))
         o = replace(o, initial_tilt_sigma_rad=a, initial_yaw_sigma_rad=a)
-    return o
+    return replace(o, **dict(overrides)) if overrides else o
 
 
 def sift_of_runs(results: list[dict[str, Any]]) -> dict[str, Any] | None:
     """The SIFT settings the trials ran with, when every trial recorded the same (else None)."""
     seen = {json.dumps(r.get("sift"), sort_keys=True) for r in results}
+    return json.loads(seen.pop()) if len(seen) == 1 else None
+
+
+def options_of_runs(results: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The --option overrides the trials ran with when every trial recorded the same (else None)."""
+    seen = {json.dumps(r.get("options", {}), sort_keys=True) for r in results}
     return json.loads(seen.pop()) if len(seen) == 1 else None
 
 
@@ -234,8 +268,10 @@ def run_trial(
     seed: int,
     detect_scale: float | None = None,
     initial_attitude_deg: float | None = None,
+    overrides: tuple[tuple[str, Any], ...] = (),
 ) -> dict[str, Any]:
-    """Render, detect once, run every configuration; returns per-config E and timings."""
+    """Render, detect once, run every configuration; returns per-config E and timings. ``overrides``:
+    (field, value) pairs of ``EkfOptions`` set for every configuration (``--option``)."""
     cv2.setNumThreads(1)
     from sim_bridge.europa.sensors import altimeter_samples
     from sim_bridge.europa.trajectories import paper_trajectories
@@ -252,7 +288,7 @@ def run_trial(
     t_frames = np.arange(traj.t0_s, traj.t1_s + 1e-9, 1.0 / CAMERA_HZ)
     states = traj.states(t_frames)
     # render + SIFT once; the same detections feed every configuration (timed for pairs_per_s)
-    base = bench_options(detect_scale, initial_attitude_deg)
+    base = bench_options(detect_scale, initial_attitude_deg, overrides)
     det = {c: SiftDetector(base, c) for c in ("visible", "thermal")}
     frames = []
     t_render = t_sift = 0.0
@@ -317,11 +353,15 @@ def run_trial(
     # dual pair rate: SIFT on both images + the dual filter step
     out["pair_s"] = t_sift / n + out["dual"]["filter_s_per_frame"]
     out["detect_scale"] = base.detect_scale
+    if overrides:
+        out["options"] = dict(overrides)
     out["sift"] = {c: list(base.sift_settings(c)) for c in ("visible", "thermal")}  # (nfeatures, contrast)
     return out
 
 
-def _run_job(job: tuple[str, int, int, float | None, float | None]) -> dict[str, Any]:
+def _run_job(
+    job: tuple[str, int, int, float | None, float | None, tuple[tuple[str, Any], ...]],
+) -> dict[str, Any]:
     return run_trial(*job)
 
 
@@ -419,7 +459,9 @@ def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]
     return {"trajectories": per, "average": avg}
 
 
-def daemon_path_rate(n_pairs: int = 60, detect_scale: float | None = None) -> dict[str, Any]:
+def daemon_path_rate(
+    n_pairs: int = 60, detect_scale: float | None = None, overrides: tuple[tuple[str, Any], ...] = ()
+) -> dict[str, Any]:
     """Frame pairs per second through ``VisThermalEkfEstimator.on_frames`` in dual mode (the daemon's path:
     both SIFT detections in parallel threads, then the filter step), on pre-rendered frames of trajectory 1,
     with IMU and altimeter samples fed between frames as the daemon does. Measured alone (no bench workers)."""
@@ -447,7 +489,7 @@ def daemon_path_rate(n_pairs: int = 60, detect_scale: float | None = None) -> di
     passes = []
     for _ in range(3):  # best of three passes: the other jobs on this machine only ever slow us down
         est = VisThermalEkfEstimator(
-            bench_options(detect_scale),
+            bench_options(detect_scale, None, overrides),
             {"visible": intr, "thermal": intr},
             {"visible": R_BODY_CAM_NADIR, "thermal": R_BODY_CAM_NADIR},
             st0.p_world,
@@ -517,10 +559,27 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help=f"1-sigma of the initial attitude error, drawn and told to the filter (default {INITIAL_ATTITUDE_DEG})",
     )
+    p.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="set an estimator option (an EkfOptions field) for every configuration; repeatable, "
+        "e.g. --option altimeter_bias_sigma_m=0.2",
+    )
     a = p.parse_args(argv)
+    try:
+        overrides = tuple(parse_option(x) for x in a.option)
+        bench_options(a.detect_scale, a.initial_attitude_deg, overrides)  # the options' own checks, now
+    except ValueError as exc:
+        p.error(str(exc))
     names = trajectory_names(a.trajectories, a.quick)
     trials = a.trials if a.trials is not None else (3 if a.quick else 30)
-    jobs = [(n, k, a.seed, a.detect_scale, a.initial_attitude_deg) for k in range(trials) for n in names]
+    jobs = [
+        (n, k, a.seed, a.detect_scale, a.initial_attitude_deg, overrides)
+        for k in range(trials)
+        for n in names
+    ]
     t0 = time.perf_counter()
     results: list[dict[str, Any]] = []
     n_resumed = 0
@@ -608,7 +667,7 @@ def main(argv: list[str] | None = None) -> int:
     print(table(["traj", "NEES vis", "NEES tir", "NEES dual"], rows4,
                 "Consistency: mean position NEES of the covariance sent to the autopilot (3 = consistent)"))  # fmt: skip
     pair_s = np.array([r["pair_s"] for r in results])
-    rate = daemon_path_rate(detect_scale=a.detect_scale)
+    rate = daemon_path_rate(detect_scale=a.detect_scale, overrides=overrides)
     timing = {
         "pairs_per_s": rate["pairs_per_s"],
         "pairs_per_s_from_mean_time": rate["pairs_per_s_mean"],
@@ -651,6 +710,8 @@ def main(argv: list[str] | None = None) -> int:
             "initial_attitude_sigma_deg": (
                 INITIAL_ATTITUDE_DEG if a.initial_attitude_deg is None else a.initial_attitude_deg
             ),
+            # EkfOptions fields set with --option, as the trials ran (a pooled or old runs log: from its records)
+            "option_overrides": options_of_runs(results) if a.from_runs is not None else dict(overrides),
             "initial_position_sigma_m": BENCH_OPTIONS.initial_position_sigma_m,
             "initial_velocity_sigma_mps": BENCH_OPTIONS.initial_velocity_sigma_mps,
             "E": "OLS slope (with intercept) of position-error norm vs distance travelled, percent",

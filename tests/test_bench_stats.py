@@ -8,10 +8,13 @@ import pytest
 from scipy.stats import ttest_rel
 
 from bench.thermal_ekf import (
+    bench_options,
     holm_adjusted,
     improvement,
     improvement_bootstrap,
+    options_of_runs,
     paired_worse,
+    parse_option,
     runs_seeds,
     sift_of_runs,
 )
@@ -92,6 +95,36 @@ def test_sift_of_runs_names_the_settings_only_when_every_trial_agrees() -> None:
     assert sift_of_runs([{"sift": a}, {"sift": dict(a)}]) == a
     assert sift_of_runs([{"sift": a}, {"sift": b}]) is None
     assert sift_of_runs([{"sift": a}, {"name": "1"}]) is None
+
+
+def test_option_overrides_reach_the_estimator_options_with_their_types() -> None:
+    """--option KEY=VALUE: the field's own type, every configuration's options, and a clear error otherwise."""
+    pairs = tuple(
+        parse_option(x)
+        for x in (
+            "altimeter_bias_sigma_m=0.2",
+            "facet_error_state=false",
+            "max_landmarks_per_camera=24",
+            "patch_cameras=visible,thermal",
+        )  # fmt: skip
+    )
+    assert pairs == (
+        ("altimeter_bias_sigma_m", 0.2),
+        ("facet_error_state", False),
+        ("max_landmarks_per_camera", 24),
+        ("patch_cameras", ("visible", "thermal")),
+    )
+    o = bench_options(None, None, pairs)
+    assert o.altimeter_bias_sigma_m == 0.2 and not o.facet_error_state and o.max_landmarks_per_camera == 24
+    assert bench_options().altimeter_bias_sigma_m == 0.0  # the default untouched
+    for bad, words in (("nosuch=1", "EkfOptions field"), ("facet_error_state=yes", "true or false"),
+                       ("max_landmarks_per_camera=2.5", "cannot read"), ("mode=visible", "per configuration"),
+                       ("altimeter_bias_sigma_m", "KEY=VALUE")):  # fmt: skip
+        with pytest.raises(ValueError, match=words):
+            parse_option(bad)
+    assert options_of_runs([{"options": {"a": 1}}, {"options": {"a": 1}}]) == {"a": 1}
+    assert options_of_runs([{"options": {"a": 1}}, {"name": "1"}]) is None
+    assert options_of_runs([{"name": "1"}]) == {}
 
 
 def test_ekf_patch_summary_pairs_each_variant_with_sift_only() -> None:
