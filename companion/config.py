@@ -214,6 +214,9 @@ class EkfConfig(_Strict):
     altimeter_white_rel_sigma: Annotated[float, Field(ge=0, le=1)] = 0.005
     # facet_error_state = false: the plane's error taken as white, this fraction of the range
     facet_rel_sigma: Annotated[float, Field(gt=0, le=1)] = 0.10
+    # the altimeter's constant range offset, m, 1 sigma (what is left after calibrating it), carried in the
+    # covariance sent to the autopilot and in the filter's gains, never estimated; 0 = not modelled
+    altimeter_bias_sigma_m: Annotated[float, Field(ge=0, le=10)] = 0.0
 
 
 class EstimatorConfig(_Strict):

@@ -127,6 +127,7 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             facet_error_tau_s=e.facet_error_tau_s,
             altimeter_white_rel_sigma=e.altimeter_white_rel_sigma,
             facet_rel_sigma=e.facet_rel_sigma,
+            altimeter_bias_sigma_m=e.altimeter_bias_sigma_m,
         )
         planet = cfg.origin.planet if cfg.origin is not None else "europa"
         p0 = cfg.estimator.initial_position_ned_m

@@ -99,6 +99,7 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         "facet_error_tau_s": 1.0,
         "altimeter_white_rel_sigma": 0.01,
         "facet_rel_sigma": 0.2,
+        "altimeter_bias_sigma_m": 0.2,
     }
     assert set(changed) | {"pair_tolerance_ms"} == set(EkfConfig.model_fields)  # a new key must join here
     cfg = parse_config(

@@ -349,6 +349,45 @@ def test_facet_error_is_a_gauss_markov_state_reset_per_facet():
     assert not np.any(np.delete(f.P[18], 18)) and not np.any(np.delete(f.P[:, 18], 18))
 
 
+@pytest.mark.parametrize("rows", [1, 3])
+def test_altimeter_bias_is_a_consider_state(rows):
+    """Schmidt update: every block of P and every correction as the optimal update gives them, except the
+    bias's own variance (unchanged) and its correction (none), on both update paths."""
+    import copy
+
+    rng = np.random.default_rng(7)
+    st = straight_flight(duration_s=20.0).state_at(0.0)
+    opts = EkfOptions(facet_error_state=True, altimeter_bias_sigma_m=0.3)
+    f = InverseDepthEkf(opts, st.p_world, quat_from_rot(st.R_world_body), st.v_world, G)
+    assert f.vdim == 20 and f.idx_bias == 19 and f.P[19, 19] == pytest.approx(0.09)
+    f.reset_facet_error(0.8)
+    for _ in range(30):
+        f.propagate(np.array([0.1, -0.05, -G]), np.array([0.01, 0.0, -0.02]), 0.01)
+    assert f.P[19, 19] == pytest.approx(0.09)  # constant: no process noise
+    cols = np.array([0, 2, 4, 18, 19])
+    Hc = rng.normal(0, 1.0, (rows, len(cols)))
+    Hc[:, 3:] = 1.0  # measured = ... + c + b
+    res, Rm = rng.normal(0, 0.3, rows), np.eye(rows) * 0.02
+    H = np.zeros((rows, f.vdim))
+    H[:, cols] = Hc
+    P0 = f.covariance().copy()
+    S = H @ P0 @ H.T + Rm
+    K = P0 @ H.T @ np.linalg.inv(S)
+    P_opt = P0 - K @ S @ K.T
+    dx_opt = K @ res
+    r0 = f.r.copy()
+    for which in ("columns", "dense"):
+        g = copy.deepcopy(f)
+        dx = g.update_columns(cols, Hc, res, Rm) if which == "columns" else g.update(H, res, Rm)
+        assert dx[19] == 0.0, which
+        np.testing.assert_allclose(dx[:19], dx_opt[:19], atol=1e-12)
+        np.testing.assert_allclose(g.r, r0 + dx_opt[:3], atol=1e-12)
+        assert g.P[19, 19] == pytest.approx(0.09, abs=1e-15), which
+        np.testing.assert_allclose(g.P[:19, :], P_opt[:19, :], atol=1e-12)
+        np.testing.assert_allclose(g.P[:19, 19], P_opt[:19, 19], atol=1e-12)
+    assert np.any(P_opt[:19, 19] != P0[:19, 19])  # the cross-covariance did change: the test sees it
+
+
 def test_facet_reuse_check_follows_the_beam():
     from companion.ekf.altimeter import facet_encloses_beam, select_facet
 

@@ -5,7 +5,15 @@ v (3, world velocity), omega (3, body angular rate), b_a (3), b_g (3) accelerome
 then N inverse-depth landmarks y_i (6 each, see ``landmarks``).
 Error state (Solà's ESKF, local attitude error): dx = (dr, dtheta, dv, domega, db_a, db_g, dy_1..dy_N),
 18 + 6N long; ``P`` is its covariance. With ``EkfOptions.facet_error_state`` the vehicle part has a 19th entry,
-c (m), the error of the altimeter's facet model (see ``slam``), before the landmarks (``InverseDepthEkf.vdim``).
+c (m), the error of the altimeter's facet model (see ``slam``), and with ``altimeter_bias_sigma_m`` > 0 one more,
+the altimeter's constant range bias b (m), a consider state; both before the landmarks (``InverseDepthEkf.vdim``).
+
+Consider state (Schmidt 1966, the "Schmidt-Kalman filter" of spacecraft navigation): b is in P and in every gain,
+so the covariance carries what an unknown range offset does to the map's scale, but its estimate is never
+corrected (it stays 0) and its variance never shrinks. In an update that is the ordinary one with the
+correction of b set to 0 and P_bb restored; the other blocks (P_xx, P_xb) come out as the Schmidt form gives them.
+Why not estimate b: it cannot be told from the facet errors, ~1 % of the range and renewed every ~2 s (estimated,
+it wandered and made every mode less accurate; docs/benchmarks.md).
 
 Propagation implements eqs. 1-4 with the IMU as control input:
     r += v dt + a dt^2/2,  v += a dt,  q = q (x) Exp(omega dt),  omega = omega_m - b_g,
@@ -85,8 +93,13 @@ class InverseDepthEkf:
         self._next_id = 0
         self.facet_c = 0.0  # m, the facet model error (a state only with facet_error_state)
         self.facet_c_sigma_m = 0.0  # m, its stationary sigma (set by ``reset_facet_error``)
-        self.vdim = VEHICLE_DIM + (1 if o.facet_error_state else 0)
-        """Error-state length of the vehicle: 18, or 19 with the facet error; landmarks follow it."""
+        self.vdim = (
+            VEHICLE_DIM + (1 if o.facet_error_state else 0) + (1 if o.altimeter_bias_sigma_m > 0 else 0)
+        )
+        """Error-state length of the vehicle: 18, +1 with the facet error, +1 with the altimeter bias; landmarks
+        follow it."""
+        self.idx_bias: int | None = self.vdim - 1 if o.altimeter_bias_sigma_m > 0 else None
+        """Column of the altimeter bias (a consider state, the vehicle part's last), None without it."""
         P = np.zeros((self.vdim, self.vdim))
         P[IDX_R, IDX_R] = np.eye(3) * o.initial_position_sigma_m**2
         P[IDX_V, IDX_V] = np.eye(3) * o.initial_velocity_sigma_mps**2
@@ -99,6 +112,8 @@ class InverseDepthEkf:
         P[IDX_TH, IDX_TH] = np.eye(3) * o.initial_tilt_sigma_rad**2 + np.outer(yaw_dir, yaw_dir) * (
             o.initial_yaw_sigma_rad**2 - o.initial_tilt_sigma_rad**2
         )
+        if self.idx_bias is not None:
+            P[self.idx_bias, self.idx_bias] = o.altimeter_bias_sigma_m**2
         self.P = P
         self._Phi = np.eye(self.vdim)
         self._phi_pending = False
@@ -150,7 +165,7 @@ class InverseDepthEkf:
         if o.estimate_imu_bias:
             F[IDX_R, IDX_BA] = (-0.5 * dt * dt) * R
             F[IDX_V, IDX_BA] = -dt * R
-        if self.vdim > IDX_C and o.facet_error_tau_s > 0:
+        if o.facet_error_state and o.facet_error_tau_s > 0:
             # first-order Gauss-Markov: c decays toward 0 with time constant tau, stationary sigma kept
             phi = math.exp(-dt / o.facet_error_tau_s)
             F[IDX_C, IDX_C] = phi
@@ -219,10 +234,22 @@ class InverseDepthEkf:
         """Gain K = P H^T S^-1, P -= K H P (symmetrised), inject K r; returns the correction K r."""
         K = np.linalg.solve(S, PHt.T).T
         dx = K @ residual
+        P_bb = self._consider_variance()
         self.P = self.P - K @ PHt.T
         self.P = 0.5 * (self.P + self.P.T)
+        self._consider_restore(P_bb, dx)
         self._inject(dx)
         return dx
+
+    def _consider_variance(self) -> float:
+        """P_bb of the consider state before an update (NaN without one)."""
+        return float(self.P[self.idx_bias, self.idx_bias]) if self.idx_bias is not None else math.nan
+
+    def _consider_restore(self, P_bb: float, dx: np.ndarray) -> None:
+        """Schmidt update of the consider state: no correction, its variance as it was (see the module doc)."""
+        if self.idx_bias is not None:
+            self.P[self.idx_bias, self.idx_bias] = P_bb
+            dx[self.idx_bias] = 0.0
 
     def update_columns(
         self, cols: np.ndarray, H_cols: np.ndarray, residual: np.ndarray, R_meas: np.ndarray
@@ -241,9 +268,11 @@ class InverseDepthEkf:
             s = float(S[0, 0])
             dx = PHt[:, 0] * (float(residual[0]) / s)
             b = PHt[:, 0] * (1.0 / math.sqrt(s))
+            P_bb = self._consider_variance()
             self.P -= np.outer(b, b)
             V = self.vdim
             self.P[:V, :V] = 0.5 * (self.P[:V, :V] + self.P[:V, :V].T)
+            self._consider_restore(P_bb, dx)
             self._inject(dx)
             return dx
         return self._correct(PHt, S, residual)
@@ -321,7 +350,7 @@ class InverseDepthEkf:
         if self.opts.estimate_imu_bias:
             self.ba = self.ba + dx[IDX_BA]
             self.bg = self.bg + dx[IDX_BG]
-        if self.vdim > IDX_C:
+        if self.opts.facet_error_state:
             self.facet_c += float(dx[IDX_C])
         if self.n_landmarks:
             self.y = self.y + dx[self.vdim :].reshape(-1, LANDMARK_DIM)

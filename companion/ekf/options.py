@@ -98,6 +98,10 @@ class EkfOptions:
     facet_error_rel_sigma: float = 0.02
     facet_error_tau_s: float = 2.0  # s
     altimeter_white_rel_sigma: float = 0.005
+    # m, the altimeter's constant range bias (a range finder's offset), carried as a consider state (``filter``):
+    # in the covariance and the gains, never estimated. A bias b scales the map by about b / height in every mode;
+    # left out, the covariance sent is overconfident. 0 = not modelled
+    altimeter_bias_sigma_m: float = 0.0
     # facet_error_state False: the model error is taken as white, this fraction of the range (with 0.02 the
     # filter was overconfident, position NEES 9.3 / 8.4 / 7.5 visible / thermal / dual; 0.10 gave 4.9 / 3.6 / 3.8
     # at about the same E; docs/benchmarks.md)
@@ -163,9 +167,11 @@ class EkfOptions:
             self.facet_error_rel_sigma <= 0
             or self.facet_error_tau_s < 0
             or self.altimeter_white_rel_sigma < 0
+            or self.altimeter_bias_sigma_m < 0
         ):
             raise ValueError(
-                "facet_error_rel_sigma must be > 0, facet_error_tau_s and altimeter_white_rel_sigma >= 0"
+                "facet_error_rel_sigma must be > 0; facet_error_tau_s, altimeter_white_rel_sigma and "
+                "altimeter_bias_sigma_m >= 0"
             )
         if self.max_landmarks_per_camera < 1:
             raise ValueError("max_landmarks_per_camera must be >= 1")

@@ -245,15 +245,14 @@ class VisThermalSlam:
             self.counters.altimeter_no_facet += 1
             return
         J = lmk.to_euclidean_jacobian(ekf.y[idx])  # (3,3,6)
-        # H is non-zero only on the pose (dr, dtheta), the facet error when it is a state (measured = facet
-        # range + c, so +1) and the three facet landmarks: 24 or 25 columns
+        # H is non-zero only on the pose (dr, dtheta), the facet error and the altimeter bias when they are
+        # states (measured = facet range + c + b, so +1 each) and the three facet landmarks: 24 to 26 columns
         lm_cols = (ekf.vdim + 6 * idx[:, None] + np.arange(6)).ravel()
-        parts = [fr.H_pose[0]] + [fr.H_points[k] @ J[k] for k in range(len(idx))]
-        if ekf.vdim > IDX_C:
-            cols = np.concatenate([np.arange(6), [IDX_C], lm_cols])
-            parts.insert(1, np.ones(1))
-        else:
-            cols = np.concatenate([np.arange(6), lm_cols])
+        extra = ([IDX_C] if o.facet_error_state else []) + (
+            [ekf.idx_bias] if ekf.idx_bias is not None else []
+        )
+        cols = np.concatenate([np.arange(6), np.asarray(extra, int), lm_cols])
+        parts = [fr.H_pose[0], np.ones(len(extra))] + [fr.H_points[k] @ J[k] for k in range(len(idx))]
         H = np.concatenate(parts)[None, :]
         if o.facet_error_state:  # white part only: the facet's own error is c
             sigma2 = o.altimeter_sigma_m**2 + (o.altimeter_white_rel_sigma * range_m) ** 2
