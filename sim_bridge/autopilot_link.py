@@ -28,7 +28,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Final
 
 import numpy as np
@@ -123,7 +123,10 @@ class SimAutopilotOptions:
     distance_sensor_hz: float = 20.0
     highres_imu_hz: float = 50.0
     scaled_imu_hz: float = 0.0
-    """SCALED_IMU (mG, mrad/s) as older ArduPilot streams send; off by default."""
+    """SCALED_IMU (mG, mrad/s), as ArduPilot sends when asked; off by default."""
+    raw_imu_hz: float = 0.0
+    """RAW_IMU, what ArduPilot's default sensor stream (SRn_RAW_SENS) sends for its first IMU: SCALED_IMU's
+    units, stamped in microseconds since boot; off by default (``--imu-message raw``)."""
     origin_hz: float = 0.2
     """GPS_GLOBAL_ORIGIN repeat rate once an origin is set (also sent right after it is set)."""
     timesync_request_hz: float = 0.2
@@ -145,6 +148,23 @@ class SimAutopilotOptions:
     baudrate: int = 921_600
     read_timeout_s: float = 0.002
     backoff: Backoff = field(default_factory=Backoff)
+
+
+IMU_MESSAGES: tuple[str, ...] = ("highres", "raw", "scaled")
+"""The IMU message the simulated autopilot streams: PX4's HIGHRES_IMU, ArduPilot's default RAW_IMU, or
+SCALED_IMU."""
+
+
+def with_imu_message(options: SimAutopilotOptions, message: str, hz: float = 50.0) -> SimAutopilotOptions:
+    """``options`` streaming the IMU as ``message`` (one of ``IMU_MESSAGES``) only, at ``hz``."""
+    if message not in IMU_MESSAGES:
+        raise ValueError(f"unknown IMU message {message!r} ({', '.join(IMU_MESSAGES)})")
+    return replace(
+        options,
+        highres_imu_hz=hz if message == "highres" else 0.0,
+        raw_imu_hz=hz if message == "raw" else 0.0,
+        scaled_imu_hz=hz if message == "scaled" else 0.0,
+    )
 
 
 @dataclass(frozen=True)
@@ -323,6 +343,7 @@ class SimAutopilotLink:
                 ("distance_sensor", opts.distance_sensor_hz),
                 ("highres_imu", opts.highres_imu_hz),
                 ("scaled_imu", opts.scaled_imu_hz),
+                ("raw_imu", opts.raw_imu_hz),
                 ("origin", opts.origin_hz if self.origin is not None else 0.0),
                 ("timesync", opts.timesync_request_hz),
             )
@@ -354,6 +375,7 @@ class SimAutopilotLink:
             "distance_sensor",
             "highres_imu",
             "scaled_imu",
+            "raw_imu",
         )
         if not any(due[k] for k in telemetry):
             return
@@ -407,7 +429,7 @@ class SimAutopilotLink:
                     255,
                 )
             )
-        if due["highres_imu"] or due["scaled_imu"]:
+        if due["highres_imu"] or due["scaled_imu"] or due["raw_imu"]:
             acc = (
                 np.asarray(truth["accel_body_mps2"], dtype=float)
                 + self._accel_bias
@@ -434,10 +456,12 @@ class SimAutopilotLink:
                         0b111111,
                     )
                 )
+            acc_mg = [int(round(a / 9.80665 * 1000)) for a in acc]
+            gyr_mrad = [int(round(g * 1000)) for g in gyr]
             if due["scaled_imu"]:
-                acc_mg = [int(round(a / 9.80665 * 1000)) for a in acc]
-                gyr_mrad = [int(round(g * 1000)) for g in gyr]
                 self._send(mav.scaled_imu_encode(boot_ms % (1 << 32), *acc_mg, *gyr_mrad, 0, 0, 0))
+            if due["raw_imu"]:
+                self._send(mav.raw_imu_encode(boot_us, *acc_mg, *gyr_mrad, 0, 0, 0, 0, 0))
 
     def _geodetic(self, p_ned_m: np.ndarray) -> tuple[float, float, float]:
         """Local-tangent-plane NED -> (lat, lon, alt) around the origin (small-distance approximation)."""

@@ -18,6 +18,7 @@ import signal
 import sys
 from pathlib import Path
 
+from sim_bridge.autopilot_link import IMU_MESSAGES
 from sim_bridge.sim import WORLDS, SimConfig, world_defaults
 
 MARS_TRAJECTORIES = ["circular", "forward", "scanning"]
@@ -69,6 +70,13 @@ def _add_sim_args(p: argparse.ArgumentParser, worlds: bool = False) -> None:
         "initial heading too)",
     )
     p.add_argument(
+        "--imu-message",
+        default="highres",
+        choices=list(IMU_MESSAGES),
+        help="the autopilot's IMU stream: highres (HIGHRES_IMU, PX4), raw (RAW_IMU, ArduPilot's default "
+        "SRn_RAW_SENS stream) or scaled (SCALED_IMU) (default %(default)s)",
+    )
+    p.add_argument(
         "--wait-companion",
         type=float,
         default=0.0,
@@ -98,6 +106,7 @@ def sim_config_from_args(a: argparse.Namespace, **kw) -> SimConfig:
         world=world,
         origin_lat_lon_alt=wd["origin_lat_lon_alt"],
         compass_offset_deg=a.compass_offset,
+        imu_message=a.imu_message,
         **kw,
     )
 

@@ -170,6 +170,8 @@ def run_demo(a: argparse.Namespace) -> int:
         str(2.0 if a.start_delay is None else a.start_delay),
         "--compass-offset",
         str(a.compass_offset),
+        "--imu-message",
+        a.imu_message,
         "--zenoh-listen",
         f"tcp/127.0.0.1:{zport}",
         "--mavlink",

@@ -32,7 +32,7 @@ from companion.constants import GRAVITY_MPS2
 from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
 from companion.io.frames import encode_image
 from companion.io.mavlink import urt21_to_covariance
-from sim_bridge.autopilot_link import SimAutopilotLink, SimAutopilotOptions, SimNoise
+from sim_bridge.autopilot_link import SimAutopilotLink, SimAutopilotOptions, SimNoise, with_imu_message
 from sim_bridge.trajectory import Trajectory, circular, forward, scanning
 
 log = logging.getLogger("sim_bridge")
@@ -65,6 +65,8 @@ class SimConfig:
     wait_companion_s: float = 0.0  # before that, wait (at most this long) for a companion's HEARTBEAT
     autopilot_params: tuple[tuple[str, float], ...] = ()  # simulated autopilot parameters set by name
     compass_offset_deg: float = 0.0  # the simulated compass (ATTITUDE yaw) this far off, whole flight
+    imu_message: str = "highres"  # the autopilot's IMU stream: highres (PX4) | raw (ArduPilot's default)
+    # | scaled (sim_bridge.autopilot_link.IMU_MESSAGES)
 
 
 WORLDS = ("mars", "europa")
@@ -154,7 +156,7 @@ class SimVehicle:
         self.frames_published = 0
         self.frames_skipped = 0
         if cfg.world == "europa":
-            from sim_bridge.europa.vehicle import EuropaFlight, europa_telemetry_noise
+            from sim_bridge.europa.vehicle import EUROPA_HIGHRES_IMU_HZ, EuropaFlight, europa_telemetry_noise
 
             self.europa = EuropaFlight(cfg.seed, cfg.trajectory)
             self.traj = self.europa.traj
@@ -166,6 +168,7 @@ class SimVehicle:
                 noise=replace(europa_telemetry_noise(), yaw_offset_rad=math.radians(cfg.compass_offset_deg)),
                 params=cfg.autopilot_params,
             )
+            opts = with_imu_message(opts, cfg.imu_message, EUROPA_HIGHRES_IMU_HZ)
         elif cfg.world == "mars":
             from sim_bridge.render import VisibleRenderer
             from sim_bridge.terrain import make_scene
@@ -183,6 +186,7 @@ class SimVehicle:
                 noise=SimNoise(yaw_offset_rad=math.radians(cfg.compass_offset_deg)),
                 params=cfg.autopilot_params,
             )
+            opts = with_imu_message(opts, cfg.imu_message, SimAutopilotOptions().highres_imu_hz)
         else:
             raise ValueError(f"unknown world {cfg.world!r} ({', '.join(WORLDS)})")
         # flight time: Mars trajectories are built for duration_s, Europa's (180 s) are cut at it

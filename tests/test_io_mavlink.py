@@ -36,7 +36,7 @@ from companion.io.mavlink import (
 from companion.io.timesync import TimeSyncOptions
 from companion.io.transport import Backoff, open_transport
 from companion.types import EstimateStatus, PoseEstimate
-from sim_bridge.autopilot_link import SimAutopilotLink, SimAutopilotOptions
+from sim_bridge.autopilot_link import SimAutopilotLink, SimAutopilotOptions, with_imu_message
 
 KEY = bytes(range(32))
 FAST_BACKOFF = Backoff(min_s=0.02, max_s=0.2)
@@ -248,6 +248,68 @@ def test_parses_autopilot_messages_in_si_units(peer: UdpPeer) -> None:
     assert link.ignored_sources == 1
     # Stamps are in the companion clock (Unix us): arrival time while not synced.
     assert abs(got["att"][0].stamp_us - time.time_ns() // 1000) < 5_000_000
+
+
+@pytest.mark.parametrize(
+    ("autopilot", "first"),
+    [(mav2.MAV_AUTOPILOT_ARDUPILOTMEGA, "RAW_IMU"), (mav2.MAV_AUTOPILOT_PX4, "SCALED_IMU2")],
+)
+def test_one_imu_stream_feeds_the_estimator(peer: UdpPeer, autopilot: int, first: str) -> None:
+    """ArduPilot's default sensor stream: RAW_IMU (its first IMU, in milli-g and milli-rad/s) beside
+    SCALED_IMU2 (the second IMU). Only the better stream goes on; the other takes over once the better one
+    has stopped. Another autopilot's RAW_IMU is raw sensor counts and is never read."""
+    got: list[Any] = []
+    opts = MavlinkOptions(
+        connection=f"udpout:127.0.0.1:{peer.port}", imu_source_hold_s=0.3, read_params=False
+    )
+    link = MavlinkLink(opts, callbacks=LinkCallbacks(on_imu=got.append))
+    m = peer.mav
+    with link:
+        assert wait_for(lambda: peer.addr is not None)
+        peer.send(m.heartbeat_encode(mav2.MAV_TYPE_QUADROTOR, autopilot, 0, 0, 3))
+        assert wait_for(lambda: link.flavour is not None)
+        for i in range(5):
+            peer.send(m.raw_imu_encode(2_000_000 + 20_000 * i, 0, 500, -1000, 100, -200, 300, 0, 0, 0))
+            peer.send(m.scaled_imu2_encode(2_000 + 20 * i, 10, 10, -990, 1, 2, 3, 0, 0, 0))
+        assert wait_for(lambda: link.received.get("SCALED_IMU2", 0) == 5)
+        assert wait_for(lambda: link.received.get("RAW_IMU", 0) == 5)
+        time.sleep(0.05)
+        assert link.imu_source == first and len(got) == 5
+        assert link.imu_not_used == (5 if first == "RAW_IMU" else 0)
+        if first == "RAW_IMU":
+            for s in got:
+                np.testing.assert_allclose(s.accel_mps2, [0.0, 0.5 * 9.80665, -9.80665], rtol=1e-6)
+                np.testing.assert_allclose(s.gyro_rps, [0.1, -0.2, 0.3], rtol=1e-6)
+            time.sleep(0.4)  # RAW_IMU has stopped: the second IMU takes over
+            peer.send(m.scaled_imu2_encode(2_200, 10, 10, -990, 1, 2, 3, 0, 0, 0))
+            assert wait_for(lambda: len(got) == 6)
+            assert link.imu_source == "SCALED_IMU2" and link.status()["imu_source"] == "SCALED_IMU2"
+    np.testing.assert_allclose(got[-1].accel_mps2, np.array([10, 10, -990]) * 9.80665e-3, rtol=1e-6)
+
+
+def test_ardupilot_raw_imu_stream_reaches_the_estimator_in_si_units() -> None:
+    """The simulated autopilot streaming only RAW_IMU, as ArduPilot's SRn_RAW_SENS does: the link reads it
+    as the IMU, at hover -1 g along body down, stamped in the companion's clock once synced."""
+    sim, link = make_pair(offset_us=50_000_000, sim_opts=with_imu_message(SimAutopilotOptions(), "raw"))
+    got: list[Any] = []
+    link.callbacks.on_imu = got.append
+    sim.start()
+    link.start()
+    try:
+        assert wait_for(lambda: link.timesync.synced, 5.0)
+        n0 = len(got)
+        assert wait_for(lambda: len(got) > n0 + 20, 5.0)
+        now = time.time_ns() // 1000
+    finally:
+        link.stop()
+        sim.stop()
+    assert link.imu_source == "RAW_IMU" and not sim.options.highres_imu_hz
+    late = got[n0:]
+    acc = np.array([s.accel_mps2 for s in late])
+    assert abs(acc[:, 2].mean() + 9.80665) < 0.3 and np.abs(acc[:, :2].mean(axis=0)).max() < 0.3
+    stamps = np.array([s.stamp_us for s in late])
+    assert np.all(np.diff(stamps) > 0) and abs(int(stamps[-1]) - now) < 200_000
+    assert 0.01 < np.median(np.diff(stamps)) * 1e-6 < 0.03  # 50 Hz
 
 
 def test_signed_link_refuses_unsigned_and_accepts_signed() -> None:

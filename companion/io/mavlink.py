@@ -56,6 +56,12 @@ REFUSE_LINK_DOWN: Final = "link_down"
 
 SCALED_IMU_G_MPS2: Final = GRAVITY_MPS2["earth"]
 """SCALED_IMU reports milli-g of standard Earth gravity, whatever the planet."""
+IMU_SOURCES: Final = ("HIGHRES_IMU", "SCALED_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")
+"""IMU messages the link reads, best first. HIGHRES_IMU is PX4's (and ArduPilot's on request), in SI units.
+ArduPilot's default sensor stream (SRn_RAW_SENS) sends RAW_IMU for its first IMU, in SCALED_IMU's units
+(milli-g, milli-rad/s; ArduPilot's GCS_MAVLINK::send_raw_imu), and SCALED_IMU2/3 for the others; another
+autopilot's RAW_IMU is raw sensor counts and is not read. Interleaving two IMUs would hand the estimator
+two sets of biases in turn, so only the best stream arriving is used (``MavlinkOptions.imu_source_hold_s``)."""
 
 
 class LinkState(StrEnum):
@@ -252,6 +258,9 @@ class MavlinkOptions:
     """Unanswered PARAM_REQUEST_READs are repeated after this long ..."""
     param_attempts: int = 3
     """... this many times in all; a parameter still unanswered is reported as such."""
+    imu_source_hold_s: float = 0.5
+    """One IMU stream feeds the estimator (``IMU_SOURCES``, best first): a worse one is used only when no
+    better one has arrived for this long."""
 
 
 @dataclass
@@ -328,6 +337,11 @@ class MavlinkLink:
         self.thread_errors = 0
         self.ignored_sources = 0
         """Messages from other systems / components (GCS, other peripherals)."""
+        self.imu_source: str | None = None
+        """The IMU message feeding the estimator (one of ``IMU_SOURCES``), None before the first."""
+        self.imu_not_used = 0
+        """IMU messages not passed on because a better IMU stream is arriving."""
+        self._imu_seen_mono: dict[str, float] = {}
 
     # --- lifecycle ------------------------------------------------------------------------------
     def start(self) -> None:
@@ -417,6 +431,8 @@ class MavlinkLink:
             "callback_errors": self.callback_errors,
             "thread_errors": self.thread_errors,
             "autopilot": self.flavour,
+            "imu_source": self.imu_source,
+            "imu_not_used": self.imu_not_used,
             "params_read": f"{sum(n in self.params for n in self._param_names)}/{len(self._param_names)}",
         }
 
@@ -687,6 +703,37 @@ class MavlinkLink:
         if not same:
             self._call(self.callbacks.on_autopilot_reset, reason)
 
+    def _handle_imu(self, name: str, msg: Any, now_us: int) -> None:
+        if name == "RAW_IMU" and self.flavour != "ardupilot":
+            return  # raw sensor counts (or an autopilot not yet known): no units to read them in
+        mono = time.monotonic()
+        self._imu_seen_mono[name] = mono
+        rank = IMU_SOURCES.index(name)
+        hold = self.options.imu_source_hold_s
+        if any(mono - self._imu_seen_mono.get(better, -math.inf) < hold for better in IMU_SOURCES[:rank]):
+            self.imu_not_used += 1
+            return
+        if name != self.imu_source:
+            if self.imu_source is not None:
+                log.info("IMU stream %s -> %s", self.imu_source, name)
+            self.imu_source = name
+        if name == "HIGHRES_IMU":
+            imu = ImuSample(
+                stamp_us=self._stamp(int(msg.time_usec), now_us),
+                accel_mps2=np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float),
+                gyro_rps=np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=float),
+            )
+        else:
+            # milli-g and milli-rad/s; RAW_IMU is stamped in microseconds since boot, SCALED_IMU* in ms
+            boot_us = int(msg.time_usec) if name == "RAW_IMU" else int(msg.time_boot_ms) * 1000
+            imu = ImuSample(
+                stamp_us=self._stamp(boot_us, now_us),
+                accel_mps2=np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float) * 1e-3 * SCALED_IMU_G_MPS2,
+                gyro_rps=np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=float) * 1e-3,
+            )
+        self.last_imu = imu
+        self._call(self.callbacks.on_imu, imu)
+
     def _handle(self, msg: Any) -> None:
         name = msg.get_type()
         now_us = self.clock_us()
@@ -737,23 +784,8 @@ class MavlinkLink:
             )
             self.last_attitude = sample
             self._call(self.callbacks.on_attitude, sample)
-        elif name == "HIGHRES_IMU":
-            imu = ImuSample(
-                stamp_us=self._stamp(int(msg.time_usec), now_us),
-                accel_mps2=np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float),
-                gyro_rps=np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=float),
-            )
-            self.last_imu = imu
-            self._call(self.callbacks.on_imu, imu)
-        elif name in ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3"):
-            # SCALED_IMU: acceleration in milli-g, angular rate in milli-rad/s.
-            imu = ImuSample(
-                stamp_us=self._stamp(int(msg.time_boot_ms) * 1000, now_us),
-                accel_mps2=np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float) * 1e-3 * SCALED_IMU_G_MPS2,
-                gyro_rps=np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=float) * 1e-3,
-            )
-            self.last_imu = imu
-            self._call(self.callbacks.on_imu, imu)
+        elif name in IMU_SOURCES:
+            self._handle_imu(name, msg, now_us)
         elif name == "DISTANCE_SENSOR":
             if int(msg.orientation) != mavlink2.MAV_SENSOR_ROTATION_PITCH_270:
                 return  # not looking down
