@@ -68,6 +68,7 @@ def format_status_line(st: dict[str, Any]) -> str:
         f"est {st['estimate_status']}{_sigma_note(st.get('sigma_h_m'))}  link {link.get('state', '?')}"
         f"{'' if link.get('timesync', True) else ' (no timesync)'}"
         f"{_params_note(link.get('params_check'))}"
+        f"{''.join(f'  {w}' for w in st.get('estimator', {}).get('warnings', {}).values())}"
     )
 
 
@@ -307,7 +308,7 @@ class Daemon:
             "estimates_log": None if self.estimate_log is None else self.estimate_log.status(),
             "estimator": {
                 k: dict(v)
-                for k in ("counters", "no_fix_reasons")
+                for k in ("counters", "no_fix_reasons", "warnings")
                 if isinstance(v := getattr(self.estimator, k, None), dict)
             },
         }

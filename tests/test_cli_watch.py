@@ -47,6 +47,8 @@ def test_status_line_names_what_an_operator_needs() -> None:
     for none in (None, float("nan")):
         assert "sigma" not in format_status_line({**STATUS, "sigma_h_m": none})
     assert line.endswith("AUTOPILOT PARAMS ERROR: VISO_TYPE")
+    blind = format_status_line({**STATUS, "estimator": {"warnings": {"imu": "NO IMU for 2.0 s"}}})
+    assert blind == line + "  NO IMU for 2.0 s"
 
 
 def test_watch_prints_the_status_lines_of_a_publishing_companion() -> None:

@@ -138,6 +138,32 @@ def test_bad_and_missing_frames_are_survived(flight):
     assert est.on_frames({"nadir": flight["frames"][0][1]["visible"]}) is None  # not one of its cameras
 
 
+def test_frames_without_imu_are_counted_and_reported(flight):
+    """An autopilot that stops streaming its IMU (or never did): each frame set with no IMU sample in the
+    last imu_gap_s is counted and the status line says so until the samples come back."""
+    est = _estimator(flight, "visible")
+    feed = _Feeder(est, flight)
+    warned = []
+    for k, (t, fs) in enumerate(flight["frames"][:8]):
+        if k <= 3 or k == 7:
+            feed.until(t)
+        else:  # frames 4-6: the IMU is silent, the altimeter goes on
+            feed.ii = next(i for i, s in enumerate(feed.imu) if s.stamp_us > t)
+            while feed.ia < len(feed.alt) and feed.alt[feed.ia].stamp_us <= t:
+                est.on_altimeter(feed.alt[feed.ia])
+                feed.ia += 1
+        est.on_frames({"visible": fs["visible"]})
+        warned.append(dict(est.warnings))
+    est.close()
+    assert est.counters["frames_without_imu"] == 3
+    assert [bool(w) for w in warned] == [False] * 4 + [True] * 3 + [False]
+    assert warned[4]["imu"] == "NO IMU for 1.0 s" and warned[6]["imu"] == "NO IMU for 3.0 s"
+    blind = _estimator(flight, "visible")
+    blind.on_frames({"visible": flight["frames"][0][1]["visible"]})
+    blind.close()
+    assert blind.warnings == {"imu": "NO IMU"} and blind.counters["frames_without_imu"] == 1
+
+
 def test_a_diverged_filter_restarts_at_the_last_good_pose(flight):
     """A filter whose state goes non-finite is restarted at its last good pose: that frame gives no estimate,
     reset_counter moves once, the flight's counters carry on, and the next frames are estimated again."""

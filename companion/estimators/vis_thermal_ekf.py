@@ -13,6 +13,7 @@ process keeps its setting).
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
@@ -41,6 +42,7 @@ from companion.types import (
 __all__ = ["EkfOptions", "SequenceResult", "VisThermalEkfEstimator", "run_sequence"]
 
 _BLAS = ThreadpoolController()
+log = logging.getLogger(__name__)
 
 
 def _attitude_from_gravity(accel_mps2: np.ndarray, yaw_rad: float) -> np.ndarray:
@@ -69,6 +71,9 @@ class VisThermalEkfEstimator:
     max_local_position_age_s = 1.0
     hold_s = 1.0
     """Longest time (s) IMU / altimeter samples wait for a frame set older than them (``_hold``)."""
+    imu_gap_s = 0.5
+    """A frame set with no IMU sample this close before it is counted in ``frames_without_imu`` and the
+    status says so (``warnings``): without an IMU the filter propagates as if the vehicle hovered."""
 
     def __init__(
         self,
@@ -119,7 +124,11 @@ class VisThermalEkfEstimator:
             "altimeter_updates": 0,
             "matches_refused": 0,  # gated matches the 1-point RANSAC refused
             "patch_matches": 0,  # landmarks SIFT missed that their first patch found (patch_cameras)
+            "frames_without_imu": 0,  # frame sets with no IMU sample in the imu_gap_s before them
         }
+        self.warnings: dict[str, str] = {}
+        """What the status line should show now (key -> text), e.g. no IMU arriving."""
+        self._last_imu_us: int | None = None
 
     # -- autopilot inputs ----------------------------------------------------------------------------
     def on_attitude(self, s: AttitudeSample) -> None:
@@ -128,6 +137,7 @@ class VisThermalEkfEstimator:
 
     def on_imu(self, s: ImuSample) -> None:
         """Hold an IMU sample for the filter (``_hold``); propagation (eqs. 1-4) happens as it needs it."""
+        self._last_imu_us = s.stamp_us if self._last_imu_us is None else max(self._last_imu_us, s.stamp_us)
         self._hold(s)
 
     def on_local_position(self, s: LocalPositionSample) -> None:
@@ -199,6 +209,7 @@ class VisThermalEkfEstimator:
     def on_detections(self, stamp_us: int, detections: Mapping[str, Detections]) -> PoseEstimate | None:
         """One filter step from precomputed detections (the benchmark shares SIFT across modes)."""
         self.counters["frames"] += 1
+        self._check_imu(stamp_us)
         self._feed(stamp_us)
         with _BLAS.limit(limits=1, user_api="blas"):
             if not self.slam.started and not self._start(stamp_us):
@@ -219,6 +230,24 @@ class VisThermalEkfEstimator:
                 self._reinit(stamp_us)
                 return None
         return self._to_estimate(pose)
+
+    def _check_imu(self, stamp_us: int) -> None:
+        """Count and report frame sets that arrive with no recent IMU sample (an autopilot not streaming
+        HIGHRES_IMU / RAW_IMU / SCALED_IMU: ``deploy/README.md``)."""
+        last = self._last_imu_us
+        if last is not None and stamp_us - last <= self.imu_gap_s * 1e6:
+            if self.warnings.pop("imu", None) is not None:
+                log.info("IMU samples arriving again")
+            return
+        self.counters["frames_without_imu"] += 1
+        text = "NO IMU" if last is None else f"NO IMU for {(stamp_us - last) * 1e-6:.1f} s"
+        if "imu" not in self.warnings:
+            log.warning(
+                "%s: the filter propagates as if the vehicle hovered; have the autopilot stream HIGHRES_IMU, "
+                "RAW_IMU or SCALED_IMU to the companion",
+                text,
+            )
+        self.warnings["imu"] = text
 
     def _start(self, stamp_us: int) -> bool:
         """Start the filter at ``stamp_us``; False (not started) while the initial position is unknown."""
