@@ -150,9 +150,15 @@ class SimAutopilotOptions:
     backoff: Backoff = field(default_factory=Backoff)
 
 
-IMU_MESSAGES: tuple[str, ...] = ("highres", "raw", "scaled")
-"""The IMU message the simulated autopilot streams: PX4's HIGHRES_IMU, ArduPilot's default RAW_IMU, or
-SCALED_IMU."""
+IMU_MESSAGES: tuple[str, ...] = ("highres", "raw", "scaled", "none")
+"""The IMU message the simulated autopilot streams: PX4's HIGHRES_IMU, ArduPilot's default RAW_IMU,
+SCALED_IMU, or none (an autopilot whose sensor stream is off until a peer asks for it)."""
+INTERVAL_STREAMS: Final = {
+    mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU: "highres_imu",
+    mavlink2.MAVLINK_MSG_ID_RAW_IMU: "raw_imu",
+    mavlink2.MAVLINK_MSG_ID_SCALED_IMU: "scaled_imu",
+}
+"""Messages whose rate MAV_CMD_SET_MESSAGE_INTERVAL sets on the simulated autopilot (message id -> stream)."""
 
 
 def with_imu_message(options: SimAutopilotOptions, message: str, hz: float = 50.0) -> SimAutopilotOptions:
@@ -208,6 +214,8 @@ class SimAutopilotLink:
         self.codec = MavCodec(sysid, compid, opts.signing_key, 0, opts.accept_unsigned)
         self.sysid, self.compid = sysid, compid
         self._lock = threading.Lock()
+        self.rate_overrides: dict[str, float] = {}
+        """Stream rates (Hz) set by peers with MAV_CMD_SET_MESSAGE_INTERVAL, over ``options``' (``INTERVAL_STREAMS``)."""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._boot_wall_us = clock_us()
@@ -332,8 +340,10 @@ class SimAutopilotLink:
     def _send_due(self) -> None:
         opts, mav = self.options, self.codec.mav
         mono = time.monotonic()
+        with self._lock:
+            overrides = dict(self.rate_overrides)
         due = {
-            name: self._due(name, hz, mono)
+            name: self._due(name, overrides.get(name, hz), mono)
             for name, hz in (
                 ("heartbeat", opts.heartbeat_hz),
                 ("system_time", opts.system_time_hz),
@@ -501,6 +511,24 @@ class SimAutopilotLink:
             if msg.target_system in (0, self.sysid):
                 self.origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
                 self._send_origin()
+        elif name == "COMMAND_LONG":
+            if msg.target_system not in (0, self.sysid):
+                return
+            result = mavlink2.MAV_RESULT_UNSUPPORTED
+            if int(msg.command) == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL:
+                stream = INTERVAL_STREAMS.get(int(msg.param1))
+                if stream is not None:
+                    # as ArduPilot: interval in us, 0 = the default rate, -1 = off
+                    us = float(msg.param2)
+                    with self._lock:
+                        if us == 0:
+                            self.rate_overrides.pop(stream, None)
+                        else:
+                            self.rate_overrides[stream] = 0.0 if us < 0 else 1e6 / us
+                    result = mavlink2.MAV_RESULT_ACCEPTED
+                else:
+                    result = mavlink2.MAV_RESULT_DENIED
+            self._send(self.codec.mav.command_ack_encode(int(msg.command), result))
         elif name == "PARAM_REQUEST_READ":
             if msg.target_system not in (0, self.sysid):
                 return

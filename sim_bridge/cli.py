@@ -74,7 +74,8 @@ def _add_sim_args(p: argparse.ArgumentParser, worlds: bool = False) -> None:
         default="highres",
         choices=list(IMU_MESSAGES),
         help="the autopilot's IMU stream: highres (HIGHRES_IMU, PX4), raw (RAW_IMU, ArduPilot's default "
-        "SRn_RAW_SENS stream) or scaled (SCALED_IMU) (default %(default)s)",
+        "SRn_RAW_SENS stream), scaled (SCALED_IMU) or none until a peer asks with "
+        "MAV_CMD_SET_MESSAGE_INTERVAL (default %(default)s)",
     )
     p.add_argument(
         "--wait-companion",

@@ -312,6 +312,34 @@ def test_ardupilot_raw_imu_stream_reaches_the_estimator_in_si_units() -> None:
     assert 0.01 < np.median(np.diff(stamps)) * 1e-6 < 0.03  # 50 Hz
 
 
+@pytest.mark.parametrize("hz", [0.0, 40.0])
+def test_the_link_asks_a_silent_autopilot_for_its_imu(hz: float) -> None:
+    """An autopilot that streams no IMU on the companion's link (ArduPilot with SRn_RAW_SENS 0): asked with
+    MAV_CMD_SET_MESSAGE_INTERVAL, it starts sending RAW_IMU at the rate asked; a link told not to ask gets
+    nothing."""
+    silent = with_imu_message(SimAutopilotOptions(), "none")
+    sim, link = make_pair(sim_opts=silent, link_opts={"request_imu_hz": hz, "imu_request_after_s": 0.5})
+    got: list[Any] = []
+    link.callbacks.on_imu = got.append
+    sim.start()
+    link.start()
+    try:
+        assert wait_for(lambda: link.flavour == "ardupilot", 5.0)
+        if hz:
+            assert wait_for(lambda: len(got) > 40, 5.0)
+        else:
+            time.sleep(1.5)
+    finally:
+        link.stop()
+        sim.stop()
+    if hz:
+        assert link.imu_requests == 1 and link.imu_request_result == "ACCEPTED"
+        assert sim.rate_overrides == {"raw_imu": 40.0} and link.imu_source == "RAW_IMU"
+        assert abs(np.mean([s.accel_mps2[2] for s in got]) + 9.80665) < 0.3
+    else:
+        assert not got and link.imu_requests == 0 and not sim.rate_overrides
+
+
 def test_signed_link_refuses_unsigned_and_accepts_signed() -> None:
     unsigned_peer, signed_peer = UdpPeer(), UdpPeer(key=KEY)
     try:

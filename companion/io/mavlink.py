@@ -261,6 +261,11 @@ class MavlinkOptions:
     imu_source_hold_s: float = 0.5
     """One IMU stream feeds the estimator (``IMU_SOURCES``, best first): a worse one is used only when no
     better one has arrived for this long."""
+    request_imu_hz: float = 0.0
+    """When no IMU message has arrived for ``imu_request_after_s`` since the autopilot was first heard, ask it
+    for its IMU at this rate on this link (MAV_CMD_SET_MESSAGE_INTERVAL: RAW_IMU from ArduPilot, HIGHRES_IMU
+    from PX4), every ``param_retry_s``, ``param_attempts`` times (again after a reboot); 0 = never ask."""
+    imu_request_after_s: float = 2.0
 
 
 @dataclass
@@ -342,6 +347,13 @@ class MavlinkLink:
         self.imu_not_used = 0
         """IMU messages not passed on because a better IMU stream is arriving."""
         self._imu_seen_mono: dict[str, float] = {}
+        self.imu_requests = 0
+        """MAV_CMD_SET_MESSAGE_INTERVAL requests sent for the IMU (``MavlinkOptions.request_imu_hz``)."""
+        self.imu_request_result: str | None = None
+        """The autopilot's answer to the last one (MAV_RESULT name, e.g. "ACCEPTED"), None before any."""
+        self._imu_req_tries = 0
+        self._next_imu_req_mono = 0.0
+        self._heard_mono: float | None = None
 
     # --- lifecycle ------------------------------------------------------------------------------
     def start(self) -> None:
@@ -433,6 +445,8 @@ class MavlinkLink:
             "autopilot": self.flavour,
             "imu_source": self.imu_source,
             "imu_not_used": self.imu_not_used,
+            "imu_requests": self.imu_requests,
+            "imu_request_result": self.imu_request_result,
             "params_read": f"{sum(n in self.params for n in self._param_names)}/{len(self._param_names)}",
         }
 
@@ -636,6 +650,7 @@ class MavlinkLink:
             for msg in self.codec.decode(data):
                 self._handle(msg)
         mono = time.monotonic()
+        self._maybe_request_imu(mono)
         if self.transport.stats.connects != self._seen_connects:
             # (Re)connected: introduce ourselves and re-sync at once instead of at the next period.
             self._seen_connects = self.transport.stats.connects
@@ -664,6 +679,48 @@ class MavlinkLink:
                         )
                     )
 
+    def _maybe_request_imu(self, mono: float) -> None:
+        """Ask the autopilot for its IMU stream when none has arrived (``MavlinkOptions.request_imu_hz``)."""
+        o = self.options
+        if o.request_imu_hz <= 0 or self.flavour is None or self._heard_mono is None:
+            return
+        if self._last_hb_mono is None or mono - self._last_hb_mono > o.stale_after_s:
+            return  # the autopilot is not there to ask
+        if self._imu_req_tries >= o.param_attempts or mono < self._next_imu_req_mono:
+            return
+        quiet_since = max(self._imu_seen_mono.values(), default=self._heard_mono)
+        if mono - max(quiet_since, self._heard_mono) < o.imu_request_after_s:
+            return
+        msg_id = (
+            mavlink2.MAVLINK_MSG_ID_RAW_IMU
+            if self.flavour == "ardupilot"
+            else mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU
+        )
+        self._imu_req_tries += 1
+        self._next_imu_req_mono = mono + o.param_retry_s
+        log.warning(
+            "no IMU from the autopilot for %.1f s: asking it for %s at %.0f Hz (MAV_CMD_SET_MESSAGE_INTERVAL)",
+            mono - max(quiet_since, self._heard_mono),
+            mavlink2.mavlink_map[msg_id].msgname,
+            o.request_imu_hz,
+        )
+        sent = self.send_message(
+            self.codec.mav.command_long_encode(
+                o.autopilot_sysid,
+                o.autopilot_compid,
+                mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL,
+                0,
+                float(msg_id),
+                1e6 / o.request_imu_hz,
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
+        )
+        self.imu_requests += int(sent)
+
     def _stamp(self, boot_us: int, arrival_us: int) -> int:
         """Companion-clock stamp of an autopilot sample: its own stamp mapped by TIMESYNC, else arrival."""
         mapped = self.timesync.to_companion_us(boot_us)
@@ -688,6 +745,7 @@ class MavlinkLink:
         self.params = {}
         self._param_tries = 0
         self._next_param_mono = 0.0
+        self._imu_req_tries = 0  # a rebooted autopilot has forgotten the stream rates it was asked for
         mono = time.monotonic()
         same = (
             self._last_reboot_mono is not None
@@ -756,6 +814,8 @@ class MavlinkLink:
             if self._last_hb_mono is not None and mono - self._last_hb_mono > self.options.link_timeout_s:
                 self._autopilot_reset("heartbeat_gap")
             self._last_hb_mono = mono
+            if self._heard_mono is None:
+                self._heard_mono = mono
             self.autopilot_heartbeat = msg
             if self.flavour is None:
                 self.flavour = flavour_from_heartbeat(int(msg.autopilot))
@@ -786,6 +846,16 @@ class MavlinkLink:
             self._call(self.callbacks.on_attitude, sample)
         elif name in IMU_SOURCES:
             self._handle_imu(name, msg, now_us)
+        elif name == "COMMAND_ACK":
+            if int(msg.command) == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL:
+                result = mavlink2.enums["MAV_RESULT"].get(int(msg.result))
+                self.imu_request_result = (
+                    result.name.removeprefix("MAV_RESULT_") if result else str(msg.result)
+                )
+                if self.imu_request_result != "ACCEPTED":
+                    log.warning(
+                        "the autopilot answered the IMU stream request with %s", self.imu_request_result
+                    )
         elif name == "DISTANCE_SENSOR":
             if int(msg.orientation) != mavlink2.MAV_SENSOR_ROTATION_PITCH_270:
                 return  # not looking down
