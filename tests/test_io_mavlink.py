@@ -333,7 +333,7 @@ def test_the_link_asks_a_silent_autopilot_for_its_imu(hz: float) -> None:
         link.stop()
         sim.stop()
     if hz:
-        assert link.imu_requests == 1 and link.imu_request_result == "ACCEPTED"
+        assert link.imu_requests >= 1 and link.imu_request_result == "ACCEPTED"  # a retry under load
         assert sim.rate_overrides == {"raw_imu": 40.0} and link.imu_source == "RAW_IMU"
         assert abs(np.mean([s.accel_mps2[2] for s in got]) + 9.80665) < 0.3
     else:
