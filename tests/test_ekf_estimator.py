@@ -140,7 +140,8 @@ def test_bad_and_missing_frames_are_survived(flight):
 
 def test_frames_without_imu_are_counted_and_reported(flight):
     """An autopilot that stops streaming its IMU (or never did): each frame set with no IMU sample in the
-    last imu_gap_s is counted and the status line says so until the samples come back."""
+    last imu_gap_s is counted and the status line says so until the samples come back; the same for the
+    altimeter."""
     est = _estimator(flight, "visible")
     feed = _Feeder(est, flight)
     warned = []
@@ -157,11 +158,13 @@ def test_frames_without_imu_are_counted_and_reported(flight):
     est.close()
     assert est.counters["frames_without_imu"] == 3
     assert [bool(w) for w in warned] == [False] * 4 + [True] * 3 + [False]
-    assert warned[4]["imu"] == "NO IMU for 1.0 s" and warned[6]["imu"] == "NO IMU for 3.0 s"
+    assert warned[4] == {"imu": "NO IMU for 1.0 s"} and warned[6] == {"imu": "NO IMU for 3.0 s"}
+    assert est.counters["frames_without_altimeter"] == 0
     blind = _estimator(flight, "visible")
     blind.on_frames({"visible": flight["frames"][0][1]["visible"]})
     blind.close()
-    assert blind.warnings == {"imu": "NO IMU"} and blind.counters["frames_without_imu"] == 1
+    assert blind.warnings == {"imu": "NO IMU", "altimeter": "NO ALTIMETER"}
+    assert blind.counters["frames_without_imu"] == blind.counters["frames_without_altimeter"] == 1
 
 
 def test_a_diverged_filter_restarts_at_the_last_good_pose(flight):

@@ -74,6 +74,9 @@ class VisThermalEkfEstimator:
     imu_gap_s = 0.5
     """A frame set with no IMU sample this close before it is counted in ``frames_without_imu`` and the
     status says so (``warnings``): without an IMU the filter propagates as if the vehicle hovered."""
+    altimeter_gap_s = 2.0
+    """Likewise for the altimeter (``frames_without_altimeter``): without it the scale rests on the landmarks'
+    first depths only (out of its range, or DISTANCE_SENSOR not streamed)."""
 
     def __init__(
         self,
@@ -125,10 +128,12 @@ class VisThermalEkfEstimator:
             "matches_refused": 0,  # gated matches the 1-point RANSAC refused
             "patch_matches": 0,  # landmarks SIFT missed that their first patch found (patch_cameras)
             "frames_without_imu": 0,  # frame sets with no IMU sample in the imu_gap_s before them
+            "frames_without_altimeter": 0,  # ... no altimeter range in the altimeter_gap_s before them
         }
         self.warnings: dict[str, str] = {}
         """What the status line should show now (key -> text), e.g. no IMU arriving."""
         self._last_imu_us: int | None = None
+        self._last_alt_us: int | None = None
 
     # -- autopilot inputs ----------------------------------------------------------------------------
     def on_attitude(self, s: AttitudeSample) -> None:
@@ -146,6 +151,10 @@ class VisThermalEkfEstimator:
 
     def on_altimeter(self, s: AltimeterSample) -> None:
         """Hold an altimeter sample for the filter (``_hold``): it updates the filter at its own stamp."""
+        if np.isfinite(s.range_m) and s.range_m > 0:
+            self._last_alt_us = (
+                s.stamp_us if self._last_alt_us is None else max(self._last_alt_us, s.stamp_us)
+            )
         self._hold(s)
 
     def _hold(self, s: ImuSample | AltimeterSample) -> None:
@@ -209,7 +218,7 @@ class VisThermalEkfEstimator:
     def on_detections(self, stamp_us: int, detections: Mapping[str, Detections]) -> PoseEstimate | None:
         """One filter step from precomputed detections (the benchmark shares SIFT across modes)."""
         self.counters["frames"] += 1
-        self._check_imu(stamp_us)
+        self._check_inputs(stamp_us)
         self._feed(stamp_us)
         with _BLAS.limit(limits=1, user_api="blas"):
             if not self.slam.started and not self._start(stamp_us):
@@ -231,23 +240,28 @@ class VisThermalEkfEstimator:
                 return None
         return self._to_estimate(pose)
 
-    def _check_imu(self, stamp_us: int) -> None:
-        """Count and report frame sets that arrive with no recent IMU sample (an autopilot not streaming
-        HIGHRES_IMU / RAW_IMU / SCALED_IMU: ``deploy/README.md``)."""
-        last = self._last_imu_us
-        if last is not None and stamp_us - last <= self.imu_gap_s * 1e6:
-            if self.warnings.pop("imu", None) is not None:
-                log.info("IMU samples arriving again")
-            return
-        self.counters["frames_without_imu"] += 1
-        text = "NO IMU" if last is None else f"NO IMU for {(stamp_us - last) * 1e-6:.1f} s"
-        if "imu" not in self.warnings:
-            log.warning(
-                "%s: the filter propagates as if the vehicle hovered; have the autopilot stream HIGHRES_IMU, "
-                "RAW_IMU or SCALED_IMU to the companion",
-                text,
-            )
-        self.warnings["imu"] = text
+    def _check_inputs(self, stamp_us: int) -> None:
+        """Count and report frame sets that arrive with no recent IMU sample or altimeter range (an autopilot
+        not streaming HIGHRES_IMU / RAW_IMU / SCALED_IMU or DISTANCE_SENSOR: ``deploy/README.md``)."""
+        for key, last, gap_s, label, effect in (
+            (
+                "imu",
+                self._last_imu_us,
+                self.imu_gap_s,
+                "IMU",
+                "the filter propagates as if the vehicle hovered",
+            ),
+            ("altimeter", self._last_alt_us, self.altimeter_gap_s, "ALTIMETER", "no range to hold the scale"),
+        ):
+            if last is not None and stamp_us - last <= gap_s * 1e6:
+                if self.warnings.pop(key, None) is not None:
+                    log.info("%s samples arriving again", label)
+                continue
+            self.counters[f"frames_without_{key}"] += 1
+            text = f"NO {label}" if last is None else f"NO {label} for {(stamp_us - last) * 1e-6:.1f} s"
+            if key not in self.warnings:
+                log.warning("%s: %s (deploy/README.md, section 5)", text, effect)
+            self.warnings[key] = text
 
     def _start(self, stamp_us: int) -> bool:
         """Start the filter at ``stamp_us``; False (not started) while the initial position is unknown."""
