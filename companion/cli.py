@@ -28,7 +28,7 @@ import threading
 import tomllib
 from typing import Any
 
-from companion.config import CompanionConfig, ConfigError, load_config, parse_config
+from companion.config import CompanionConfig, ConfigError, MavlinkConfig, load_config, parse_config
 
 log = logging.getLogger("companion")
 
@@ -91,22 +91,105 @@ def estimator_cameras(cfg: CompanionConfig) -> tuple[str, ...]:
     return cameras_for_mode(cfg.estimator.ekf.mode) if cfg.estimator.kind == "vis_thermal_ekf" else ("nadir",)
 
 
+def link_config(cfg: CompanionConfig) -> MavlinkConfig:
+    """The ``[mavlink]`` section as the daemon uses it: the IMU is asked for only by the estimator that
+    propagates with it (``vis_thermal_ekf``; the others take their attitude from ATTITUDE)."""
+    if cfg.estimator.kind == "vis_thermal_ekf":
+        return cfg.mavlink
+    return cfg.mavlink.model_copy(update={"request_imu_hz": 0.0})
+
+
+SENSOR_WATCH_S = 4.0
+"""How long ``check-autopilot`` watches the autopilot's sensor streams after reading its parameters (the
+link asks for a missing IMU 2 s after the autopilot is first heard)."""
+
+
+def sensor_findings(cfg: CompanionConfig, received: dict[str, int], seconds: float, link: Any) -> list[Any]:
+    """What the estimator needs from the autopilot's streams, from the messages counted over ``seconds``:
+    ATTITUDE (the terrain estimators' attitude; the EKF's start), the IMU (the EKF's propagation), the downward
+    DISTANCE_SENSOR (every estimator's height above ground)."""
+    from companion.io.autopilot_params import ERROR, INFO, OK, WARNING, Finding
+    from companion.io.mavlink import IMU_SOURCES
+
+    def rate(name: str) -> float:
+        return received.get(name, 0) / seconds
+
+    ekf = cfg.estimator.kind == "vis_thermal_ekf"
+    out = []
+    att = rate("ATTITUDE")
+    out.append(
+        Finding("ATTITUDE", f"{att:.0f} Hz", OK, "roll, pitch, yaw")
+        if att > 0
+        else Finding(
+            "ATTITUDE",
+            "none",
+            WARNING if ekf else ERROR,
+            "stream it (ArduPilot SRn_EXTRA1, PX4 onboard mode)",
+        )
+    )
+    src = link.imu_source
+    if src is not None and rate(src) > 0:
+        out.append(
+            Finding(
+                "IMU", f"{rate(src):.0f} Hz", OK, f"{src}" + (", the filter's propagation" if ekf else "")
+            )
+        )
+    else:
+        asked = (
+            f"asked for it {link.imu_requests}x, answer {link.imu_request_result}"
+            if link.imu_requests
+            else "not asked"
+        )
+        msg = f"no {'/'.join(IMU_SOURCES)} ({asked}); ArduPilot: SRn_RAW_SENS, PX4: onboard mode"
+        out.append(
+            Finding(
+                "IMU", "none", ERROR if ekf else INFO, msg if ekf else "not used by " + cfg.estimator.kind
+            )
+        )
+    rng = rate("DISTANCE_SENSOR")
+    bad = rate("DISTANCE_SENSOR_out_of_range")
+    if rng > 0:
+        out.append(Finding("DISTANCE_SENSOR", f"{rng:.0f} Hz", OK, "downward range"))
+    elif bad > 0:
+        out.append(Finding("DISTANCE_SENSOR", "out of range", INFO, "outside its min/max (on the ground?)"))
+    else:
+        out.append(
+            Finding(
+                "DISTANCE_SENSOR",
+                "none",
+                WARNING,
+                "no downward rangefinder (RNGFNDn_ORIENT 25; ArduPilot SRn_EXTRA3): height from the estimate",
+            )
+        )
+    return out
+
+
 def cmd_check_autopilot(cfg: CompanionConfig, timeout_s: float) -> int:
-    """Read the autopilot's parameters over the configured link and print the findings."""
+    """Read the autopilot's parameters over the configured link, watch its sensor streams for
+    ``SENSOR_WATCH_S``, and print the findings."""
     import time
 
     from companion.io.autopilot import AutopilotLinkAdapter
     from companion.io.autopilot_params import ERROR
 
     offset = cfg.cameras[estimator_cameras(cfg)[0]].position_in_body_m
-    link = AutopilotLinkAdapter(cfg.mavlink, cfg.origin, camera_offset_m=offset)
+    link = AutopilotLinkAdapter(link_config(cfg), cfg.origin, camera_offset_m=offset)
     link.link.start()
+    sensors: list[Any] = []
     try:
         end = time.monotonic() + timeout_s
         while time.monotonic() < end and link.check_autopilot() is None:
             time.sleep(0.05)
         findings = link.check_autopilot()
         hb = link.link.autopilot_heartbeat
+        if findings is not None:
+            heard = link.link.heard_mono or time.monotonic()
+            # past the link's IMU request (2 s after the first heartbeat) and its answer, then count
+            time.sleep(max(0.0, heard + link.link.options.imu_request_after_s + 1.0 - time.monotonic()))
+            before = dict(link.link.received)
+            time.sleep(SENSOR_WATCH_S)
+            counted = {k: v - before.get(k, 0) for k, v in link.link.received.items()}
+            sensors = sensor_findings(cfg, counted, SENSOR_WATCH_S, link.link)
     finally:
         link.stop()
     if findings is None:
@@ -114,10 +197,11 @@ def cmd_check_autopilot(cfg: CompanionConfig, timeout_s: float) -> int:
         print(f"{cfg.mavlink.connection}: {what} within {timeout_s:g} s; only ArduPilot and PX4 are checked")
         return 1
     print(f"{cfg.mavlink.connection}: {link.link.flavour}, {len(link.link.params)} parameters read")
-    width = max(len(f.param) for f in findings)
-    for f in findings:
+    everything = findings + sensors
+    width = max(len(f.param) for f in everything)
+    for f in everything:
         print(f"  {f.severity.upper():7s} {f.param:{width}s} = {f.value:10s} {f.message}")
-    return 1 if any(f.severity == ERROR for f in findings) else 0
+    return 1 if any(f.severity == ERROR for f in everything) else 0
 
 
 def _print_statuses(inbox: Any, key: str, connect: list[str], count: int, timeout_s: float, raw: bool) -> int:
@@ -189,7 +273,7 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     tol_us = int(cfg.estimator.ekf.pair_tolerance_ms * 1000)
     handoff = FrameHandoff(tuple(estimator.cameras), pair_tolerance_us=tol_us)
     offset = cfg.cameras[estimator_cameras(cfg)[0]].position_in_body_m
-    link = AutopilotLinkAdapter(cfg.mavlink, cfg.origin, camera_offset_m=offset)
+    link = AutopilotLinkAdapter(link_config(cfg), cfg.origin, camera_offset_m=offset)
     z = cfg.zenoh
     session = open_session(z.mode, z.connect, z.listen, z.multicast_scouting)
     status_pub = StatusPublisher(session, z.status_key)

@@ -81,8 +81,9 @@ class MavlinkConfig(_Strict):
     # estimates of frames captured longer ago than this are not sent, counted as "too_old" (ArduPilot's EKF3
     # discards external-nav samples 500 ms behind its fusion time); 0 = send whatever the age
     max_estimate_age_ms: Annotated[float, Field(ge=0)] = 500.0
-    # no IMU message from the autopilot 2 s after it is first heard: ask it for its IMU at this rate on this
-    # link (MAV_CMD_SET_MESSAGE_INTERVAL: RAW_IMU from ArduPilot, HIGHRES_IMU from PX4); 0 = never ask
+    # vis_thermal_ekf (the estimator that uses the IMU): no IMU message from the autopilot 2 s after it is
+    # first heard, ask it for its IMU at this rate on this link (MAV_CMD_SET_MESSAGE_INTERVAL: RAW_IMU from
+    # ArduPilot, HIGHRES_IMU from PX4); 0 = never ask
     request_imu_hz: Annotated[float, Field(ge=0, le=400)] = 50.0
 
     @field_validator("connection")

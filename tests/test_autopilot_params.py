@@ -4,6 +4,8 @@ autopilot over MAVLink (UDP on loopback) through the daemon's link adapter."""
 from __future__ import annotations
 
 import struct
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -33,6 +35,7 @@ from sim_bridge.autopilot_link import (
     REJECT_VISO_DISABLED,
     SimAutopilotLink,
     SimAutopilotOptions,
+    with_imu_message,
 )
 
 GOOD_AP = {name: value for name, (value, _kind) in DEFAULT_PARAMS.items()}
@@ -192,3 +195,33 @@ def test_unanswered_parameters_end_the_reading_after_the_retries() -> None:
     finally:
         link.stop()
         sim.stop()
+
+
+@pytest.mark.parametrize("request_imu_hz", [50, 0])
+def test_check_autopilot_reports_the_sensor_streams_the_estimator_needs(request_imu_hz: int) -> None:
+    """``companion check-autopilot`` (its own process) against the simulated autopilot streaming no IMU, as
+    an ArduPilot with SRn_RAW_SENS 0: the EKF's configuration asks for it and reports it streaming; told not
+    to ask, it reports the missing IMU as an error and exits 1."""
+    port = free_port()
+    opts = with_imu_message(SimAutopilotOptions(), "none")
+    sim = SimAutopilotLink(f"udpin:127.0.0.1:{port}", rng=np.random.default_rng(2), options=opts)
+    sim.start()
+    try:
+        cmd = [
+            sys.executable, "-m", "companion", "check-autopilot", "--config", "configs/europa_dual_ekf.toml",
+            "--set", f'mavlink.connection="udpout:127.0.0.1:{port}"',
+            "--set", f"mavlink.request_imu_hz={request_imu_hz}", "--timeout", "10",
+        ]  # fmt: skip
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    finally:
+        sim.stop()
+    lines = {ln.split()[1]: ln for ln in out.stdout.splitlines() if ln.startswith("  ")}
+    assert lines["ATTITUDE"].split()[0] == "OK" and lines["DISTANCE_SENSOR"].split()[0] == "OK", out.stdout
+    if request_imu_hz:
+        assert out.returncode == 0, out.stdout + out.stderr
+        assert lines["IMU"].split()[0] == "OK" and "RAW_IMU" in lines["IMU"], out.stdout
+        assert sim.rate_overrides == {"raw_imu": 50.0}
+    else:
+        assert out.returncode == 1, out.stdout + out.stderr
+        assert lines["IMU"].split()[:4] == ["ERROR", "IMU", "=", "none"] and "not asked" in lines["IMU"]
+        assert not sim.rate_overrides

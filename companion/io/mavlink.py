@@ -353,7 +353,8 @@ class MavlinkLink:
         """The autopilot's answer to the last one (MAV_RESULT name, e.g. "ACCEPTED"), None before any."""
         self._imu_req_tries = 0
         self._next_imu_req_mono = 0.0
-        self._heard_mono: float | None = None
+        self.heard_mono: float | None = None
+        """time.monotonic() of the autopilot's first HEARTBEAT, None before it."""
 
     # --- lifecycle ------------------------------------------------------------------------------
     def start(self) -> None:
@@ -682,14 +683,14 @@ class MavlinkLink:
     def _maybe_request_imu(self, mono: float) -> None:
         """Ask the autopilot for its IMU stream when none has arrived (``MavlinkOptions.request_imu_hz``)."""
         o = self.options
-        if o.request_imu_hz <= 0 or self.flavour is None or self._heard_mono is None:
+        if o.request_imu_hz <= 0 or self.flavour is None or self.heard_mono is None:
             return
         if self._last_hb_mono is None or mono - self._last_hb_mono > o.stale_after_s:
             return  # the autopilot is not there to ask
         if self._imu_req_tries >= o.param_attempts or mono < self._next_imu_req_mono:
             return
-        quiet_since = max(self._imu_seen_mono.values(), default=self._heard_mono)
-        if mono - max(quiet_since, self._heard_mono) < o.imu_request_after_s:
+        quiet_since = max(self._imu_seen_mono.values(), default=self.heard_mono)
+        if mono - max(quiet_since, self.heard_mono) < o.imu_request_after_s:
             return
         msg_id = (
             mavlink2.MAVLINK_MSG_ID_RAW_IMU
@@ -700,7 +701,7 @@ class MavlinkLink:
         self._next_imu_req_mono = mono + o.param_retry_s
         log.warning(
             "no IMU from the autopilot for %.1f s: asking it for %s at %.0f Hz (MAV_CMD_SET_MESSAGE_INTERVAL)",
-            mono - max(quiet_since, self._heard_mono),
+            mono - max(quiet_since, self.heard_mono),
             mavlink2.mavlink_map[msg_id].msgname,
             o.request_imu_hz,
         )
@@ -814,8 +815,8 @@ class MavlinkLink:
             if self._last_hb_mono is not None and mono - self._last_hb_mono > self.options.link_timeout_s:
                 self._autopilot_reset("heartbeat_gap")
             self._last_hb_mono = mono
-            if self._heard_mono is None:
-                self._heard_mono = mono
+            if self.heard_mono is None:
+                self.heard_mono = mono
             self.autopilot_heartbeat = msg
             if self.flavour is None:
                 self.flavour = flavour_from_heartbeat(int(msg.autopilot))
