@@ -15,6 +15,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from companion.constants import R_BODY_CAM_NADIR
+from companion.ekf.options import EkfOptions
 from companion.geometry import CameraIntrinsics, rot_from_rpy
 
 
@@ -182,6 +183,10 @@ class TerrainLbaConfig(_Strict):
     vo_tilt_sigma_rad: Annotated[float, Field(ge=0)] = 0.001
 
 
+_EKF = EkfOptions()
+"""The estimator's defaults, which the configuration's defaults repeat."""
+
+
 class EkfConfig(_Strict):
     mode: Literal["visible", "thermal", "dual"] = "dual"
     max_landmarks_per_camera: Annotated[int, Field(ge=4, le=256)] = 32
@@ -221,6 +226,16 @@ class EkfConfig(_Strict):
     # the altimeter's constant range offset, m, 1 sigma (what is left after calibrating it), carried in the
     # covariance sent to the autopilot and in the filter's gains, never estimated; 0 = not modelled
     altimeter_bias_sigma_m: Annotated[float, Field(ge=0, le=10)] = 0.0
+    # the IMU's error model, from its datasheet (defaults: the simulated ICM-42688-class MEMS part): white
+    # noise densities, bias random walks, and the biases' prior spread at the start (the filter estimates
+    # them; false: the filter takes the IMU as unbiased, paper 2's state)
+    accel_noise_density: Annotated[float, Field(gt=0)] = _EKF.accel_noise_density  # m/s^2/sqrt(Hz)
+    gyro_noise_density: Annotated[float, Field(gt=0)] = _EKF.gyro_noise_density  # rad/s/sqrt(Hz)
+    accel_bias_walk: Annotated[float, Field(ge=0)] = _EKF.accel_bias_walk  # m/s^3/sqrt(Hz)
+    gyro_bias_walk: Annotated[float, Field(ge=0)] = _EKF.gyro_bias_walk  # rad/s^2/sqrt(Hz)
+    estimate_imu_bias: bool = _EKF.estimate_imu_bias
+    accel_bias_sigma0: Annotated[float, Field(gt=0)] = _EKF.accel_bias_sigma0  # m/s^2
+    gyro_bias_sigma0: Annotated[float, Field(gt=0)] = _EKF.gyro_bias_sigma0  # rad/s
 
 
 class EstimatorConfig(_Strict):

@@ -128,6 +128,13 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             altimeter_white_rel_sigma=e.altimeter_white_rel_sigma,
             facet_rel_sigma=e.facet_rel_sigma,
             altimeter_bias_sigma_m=e.altimeter_bias_sigma_m,
+            accel_noise_density=e.accel_noise_density,
+            gyro_noise_density=e.gyro_noise_density,
+            accel_bias_walk=e.accel_bias_walk,
+            gyro_bias_walk=e.gyro_bias_walk,
+            estimate_imu_bias=e.estimate_imu_bias,
+            accel_bias_sigma0=e.accel_bias_sigma0,
+            gyro_bias_sigma0=e.gyro_bias_sigma0,
         )
         planet = cfg.origin.planet if cfg.origin is not None else "europa"
         p0 = cfg.estimator.initial_position_ned_m

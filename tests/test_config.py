@@ -100,6 +100,13 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         "altimeter_white_rel_sigma": 0.01,
         "facet_rel_sigma": 0.2,
         "altimeter_bias_sigma_m": 0.2,
+        "accel_noise_density": 4e-3,
+        "gyro_noise_density": 3e-4,
+        "accel_bias_walk": 2e-4,
+        "gyro_bias_walk": 4e-6,
+        "estimate_imu_bias": False,
+        "accel_bias_sigma0": 0.05,
+        "gyro_bias_sigma0": 1e-3,
     }
     assert set(changed) | {"pair_tolerance_ms"} == set(EkfConfig.model_fields)  # a new key must join here
     cfg = parse_config(
