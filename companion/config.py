@@ -236,6 +236,15 @@ class EkfConfig(_Strict):
     estimate_imu_bias: bool = _EKF.estimate_imu_bias
     accel_bias_sigma0: Annotated[float, Field(gt=0)] = _EKF.accel_bias_sigma0  # m/s^2
     gyro_bias_sigma0: Annotated[float, Field(gt=0)] = _EKF.gyro_bias_sigma0  # rad/s
+    # how well the start is known (the autopilot's LOCAL_POSITION_NED and ATTITUDE at the hand-over, or the
+    # configured start), 1 sigma per axis: position m, velocity m/s, roll and pitch rad, yaw rad
+    initial_position_sigma_m: Annotated[float, Field(gt=0)] = _EKF.initial_position_sigma_m
+    initial_velocity_sigma_mps: Annotated[float, Field(gt=0)] = _EKF.initial_velocity_sigma_mps
+    initial_tilt_sigma_rad: Annotated[float, Field(gt=0, le=1)] = _EKF.initial_tilt_sigma_rad
+    initial_yaw_sigma_rad: Annotated[float, Field(gt=0, le=3.2)] = _EKF.initial_yaw_sigma_rad
+    # SIFT on the image scaled by this (0.5: the pyramid starts at the camera's resolution, ~2.6x faster than
+    # 1.0); raise it on a computer with time to spare
+    detect_scale: Annotated[float, Field(gt=0.1, le=1)] = _EKF.detect_scale
 
 
 class EstimatorConfig(_Strict):

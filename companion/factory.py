@@ -135,6 +135,11 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             estimate_imu_bias=e.estimate_imu_bias,
             accel_bias_sigma0=e.accel_bias_sigma0,
             gyro_bias_sigma0=e.gyro_bias_sigma0,
+            initial_position_sigma_m=e.initial_position_sigma_m,
+            initial_velocity_sigma_mps=e.initial_velocity_sigma_mps,
+            initial_tilt_sigma_rad=e.initial_tilt_sigma_rad,
+            initial_yaw_sigma_rad=e.initial_yaw_sigma_rad,
+            detect_scale=e.detect_scale,
         )
         planet = cfg.origin.planet if cfg.origin is not None else "europa"
         p0 = cfg.estimator.initial_position_ned_m

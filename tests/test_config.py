@@ -107,6 +107,11 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         "estimate_imu_bias": False,
         "accel_bias_sigma0": 0.05,
         "gyro_bias_sigma0": 1e-3,
+        "initial_position_sigma_m": 0.5,
+        "initial_velocity_sigma_mps": 0.2,
+        "initial_tilt_sigma_rad": 0.02,
+        "initial_yaw_sigma_rad": 0.1,
+        "detect_scale": 0.75,
     }
     assert set(changed) | {"pair_tolerance_ms"} == set(EkfConfig.model_fields)  # a new key must join here
     cfg = parse_config(
