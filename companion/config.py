@@ -58,8 +58,29 @@ class CameraConfig(_Strict):
     # where the camera sits, body FRD metres. The estimates are this camera's position; the autopilot moves
     # them to its body origin with VISO_POS_* / EKF2_EV_POS_*, which must say the same (the daemon checks)
     position_in_body_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # a calibrated camera: its pinhole matrix in pixels (ROS camera_info's P for the rectified image), all four
+    # or none; they replace focal_mm / sensor_mm (square pixels, centred). The frames must be undistorted
+    # (rectified) before they are published: the estimators have no lens distortion model
+    fx_px: Annotated[float, Field(gt=0)] | None = None
+    fy_px: Annotated[float, Field(gt=0)] | None = None
+    cx_px: float | None = None
+    cy_px: float | None = None
+
+    @model_validator(mode="after")
+    def _pinhole(self) -> CameraConfig:
+        given = [v is not None for v in (self.fx_px, self.fy_px, self.cx_px, self.cy_px)]
+        if any(given) and not all(given):
+            raise ValueError("fx_px, fy_px, cx_px and cy_px go together (all four, or none)")
+        if all(given) and not (0 <= self.cx_px < self.width and 0 <= self.cy_px < self.height):  # type: ignore[operator]
+            raise ValueError(
+                f"the principal point ({self.cx_px}, {self.cy_px}) is outside the {self.width}x{self.height} image"
+            )
+        return self
 
     def intrinsics(self) -> CameraIntrinsics:
+        if self.fx_px is not None:
+            assert self.fy_px is not None and self.cx_px is not None and self.cy_px is not None
+            return CameraIntrinsics(self.width, self.height, self.fx_px, self.fy_px, self.cx_px, self.cy_px)
         return CameraIntrinsics.from_focal_sensor(self.width, self.height, self.focal_mm, self.sensor_mm)
 
     def R_body_cam(self) -> np.ndarray:

@@ -62,6 +62,19 @@ def test_camera_geometry_from_config() -> None:
     np.testing.assert_allclose(R[:, 2], [0, 0, 1], atol=1e-12)
 
 
+def test_a_calibrated_camera_gives_its_own_pinhole_matrix() -> None:
+    cam = {"key": "uav/camera/nadir", "width": 640, "height": 480}
+    calib = {"fx_px": 552.1, "fy_px": 551.4, "cx_px": 322.7, "cy_px": 236.9}
+    cfg = parse_config({**MINIMAL, "cameras": {"nadir": {**cam, **calib}}})
+    np.testing.assert_allclose(
+        cfg.cameras["nadir"].intrinsics().K, [[552.1, 0, 322.7], [0, 551.4, 236.9], [0, 0, 1]]
+    )
+    with pytest.raises(ConfigError, match="all four, or none"):
+        parse_config({**MINIMAL, "cameras": {"nadir": {**cam, "fx_px": 552.1}}})
+    with pytest.raises(ConfigError, match="outside the 640x480 image"):
+        parse_config({**MINIMAL, "cameras": {"nadir": {**cam, **calib, "cx_px": 700.0}}})
+
+
 def test_overrides_are_validated_too() -> None:
     cfg = parse_config(MINIMAL)
     cfg2 = apply_overrides(
