@@ -102,21 +102,21 @@ def test_option_overrides_reach_the_estimator_options_with_their_types() -> None
     pairs = tuple(
         parse_option(x)
         for x in (
-            "altimeter_bias_sigma_m=0.2",
+            "altimeter_bias_sigma_m=0.3",
             "facet_error_state=false",
             "max_landmarks_per_camera=24",
             "patch_cameras=visible,thermal",
         )  # fmt: skip
     )
     assert pairs == (
-        ("altimeter_bias_sigma_m", 0.2),
+        ("altimeter_bias_sigma_m", 0.3),
         ("facet_error_state", False),
         ("max_landmarks_per_camera", 24),
         ("patch_cameras", ("visible", "thermal")),
     )
     o = bench_options(None, None, pairs)
-    assert o.altimeter_bias_sigma_m == 0.2 and not o.facet_error_state and o.max_landmarks_per_camera == 24
-    assert bench_options().altimeter_bias_sigma_m == 0.0  # the default untouched
+    assert o.altimeter_bias_sigma_m == 0.3 and not o.facet_error_state and o.max_landmarks_per_camera == 24
+    assert bench_options().altimeter_bias_sigma_m == 0.2  # the benchmark's own setting untouched
     for bad, words in (("nosuch=1", "EkfOptions field"), ("facet_error_state=yes", "true or false"),
                        ("max_landmarks_per_camera=2.5", "cannot read"), ("mode=visible", "per configuration"),
                        ("altimeter_bias_sigma_m", "KEY=VALUE")):  # fmt: skip
