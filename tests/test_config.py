@@ -67,7 +67,7 @@ def test_a_calibrated_camera_gives_its_own_pinhole_matrix() -> None:
     calib = {"fx_px": 552.1, "fy_px": 551.4, "cx_px": 322.7, "cy_px": 236.9}
     cfg = parse_config({**MINIMAL, "cameras": {"nadir": {**cam, **calib}}})
     np.testing.assert_allclose(
-        cfg.cameras["nadir"].intrinsics().K, [[552.1, 0, 322.7], [0, 551.4, 236.9], [0, 0, 1]]
+        cfg.cameras["nadir"].intrinsics().K, np.array([[552.1, 0, 322.7], [0, 551.4, 236.9], [0, 0, 1.0]])
     )
     with pytest.raises(ConfigError, match="all four, or none"):
         parse_config({**MINIMAL, "cameras": {"nadir": {**cam, "fx_px": 552.1}}})
