@@ -105,42 +105,9 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
 
         e = cfg.estimator.ekf
         cams = cameras_for_mode(e.mode)
-        ekf_opt = EkfOptions(
-            mode=e.mode,
-            max_landmarks_per_camera=e.max_landmarks_per_camera,
-            sampling=e.sampling,
-            diversity_over_map=e.diversity_over_map,
-            one_point_ransac=e.one_point_ransac,
-            ransac_threshold_px=e.ransac_threshold_px,
-            pixel_sigma_px=e.pixel_sigma_px,
-            pixel_sigma_thermal_px=e.pixel_sigma_thermal_px,
-            anchor_descriptor=e.anchor_descriptor,
-            patch_cameras=tuple(e.patch_cameras),
-            patch_min_score=e.patch_min_score,
-            sift_nfeatures_visible=e.sift_nfeatures_visible,
-            sift_nfeatures_thermal=e.sift_nfeatures_thermal,
-            sift_contrast_threshold_visible=e.sift_contrast_threshold_visible,
-            sift_contrast_threshold_thermal=e.sift_contrast_threshold_thermal,
-            altimeter_sigma_m=e.altimeter_sigma_m,
-            facet_error_state=e.facet_error_state,
-            facet_error_rel_sigma=e.facet_error_rel_sigma,
-            facet_error_tau_s=e.facet_error_tau_s,
-            altimeter_white_rel_sigma=e.altimeter_white_rel_sigma,
-            facet_rel_sigma=e.facet_rel_sigma,
-            altimeter_bias_sigma_m=e.altimeter_bias_sigma_m,
-            accel_noise_density=e.accel_noise_density,
-            gyro_noise_density=e.gyro_noise_density,
-            accel_bias_walk=e.accel_bias_walk,
-            gyro_bias_walk=e.gyro_bias_walk,
-            estimate_imu_bias=e.estimate_imu_bias,
-            accel_bias_sigma0=e.accel_bias_sigma0,
-            gyro_bias_sigma0=e.gyro_bias_sigma0,
-            initial_position_sigma_m=e.initial_position_sigma_m,
-            initial_velocity_sigma_mps=e.initial_velocity_sigma_mps,
-            initial_tilt_sigma_rad=e.initial_tilt_sigma_rad,
-            initial_yaw_sigma_rad=e.initial_yaw_sigma_rad,
-            detect_scale=e.detect_scale,
-        )
+        # every [estimator.ekf] key but the daemon's pair_tolerance_ms is the EkfOptions field of that name
+        keys = e.model_dump(exclude={"pair_tolerance_ms"})
+        ekf_opt = EkfOptions(**{**keys, "patch_cameras": tuple(e.patch_cameras)})
         planet = cfg.origin.planet if cfg.origin is not None else "europa"
         p0 = cfg.estimator.initial_position_ned_m
         # no configured start: the filter starts from the autopilot's LOCAL_POSITION_NED (a hand-over from

@@ -466,12 +466,13 @@ class SimAutopilotLink:
                         0b111111,
                     )
                 )
-            acc_mg = [int(round(a / 9.80665 * 1000)) for a in acc]
-            gyr_mrad = [int(round(g * 1000)) for g in gyr]
-            if due["scaled_imu"]:
-                self._send(mav.scaled_imu_encode(boot_ms % (1 << 32), *acc_mg, *gyr_mrad, 0, 0, 0))
-            if due["raw_imu"]:
-                self._send(mav.raw_imu_encode(boot_us, *acc_mg, *gyr_mrad, 0, 0, 0, 0, 0))
+            if due["scaled_imu"] or due["raw_imu"]:  # both in milli-g and milli-rad/s
+                acc_mg = [int(round(a / 9.80665 * 1000)) for a in acc]
+                gyr_mrad = [int(round(g * 1000)) for g in gyr]
+                if due["scaled_imu"]:
+                    self._send(mav.scaled_imu_encode(boot_ms % (1 << 32), *acc_mg, *gyr_mrad, 0, 0, 0))
+                if due["raw_imu"]:
+                    self._send(mav.raw_imu_encode(boot_us, *acc_mg, *gyr_mrad, 0, 0, 0, 0, 0))
 
     def _geodetic(self, p_ned_m: np.ndarray) -> tuple[float, float, float]:
         """Local-tangent-plane NED -> (lat, lon, alt) around the origin (small-distance approximation)."""
