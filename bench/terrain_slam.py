@@ -38,10 +38,10 @@ from bench.common import parser, table, write_json
 from companion.constants import GRAVITY_MPS2, R_BODY_CAM_NADIR
 from companion.estimators.terrain_lba import GeoFixRecord, TerrainLbaEstimator, TerrainLbaOptions
 from companion.geometry import CameraIntrinsics, camera_pose, rot_from_rpy, rpy_from_rot
+from companion.metrics import covariance_consistency
 from companion.types import AltimeterSample, AttitudeSample, Frame
 from sim_bridge.autopilot_link import SimNoise
 from sim_bridge.render import VisibleRenderer
-from sim_bridge.sim import covariance_consistency
 from sim_bridge.terrain import SCENE_IDS, degrade_dem, make_scene
 from sim_bridge.trajectory import Trajectory, circular, forward, scanning
 

@@ -26,12 +26,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
 
 from companion.constants import GRAVITY_MPS2
 from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
 from companion.io.frames import encode_image
 from companion.io.mavlink import urt21_to_covariance
+from companion.metrics import covariance_consistency, error_stats
 from sim_bridge.autopilot_link import SimAutopilotLink, SimAutopilotOptions, SimNoise, with_imu_message
 from sim_bridge.trajectory import Trajectory, circular, forward, scanning
 
@@ -350,46 +350,12 @@ def position_error_stats(res: SimResult) -> dict[str, float | int]:
     alignment (the estimate is in the world frame): count, mean, median, rmse, p95, max, final."""
     if not len(res.est_p):
         return {"count": 0}
-    err = np.linalg.norm(res.est_p - res.est_truth_p, axis=1)
-    return {
-        "count": int(len(err)),
-        "mean": float(np.mean(err)),
-        "median": float(np.median(err)),
-        "rmse": float(np.sqrt(np.mean(err**2))),
-        "p95": float(np.percentile(err, 95)),
-        "max": float(np.max(err)),
-        "final": float(err[-1]),
-    }
-
-
-CHI2_2DOF_95 = float(chi2.ppf(0.95, 2))  # an error inside the 95 % ellipse of its 2-D covariance
+    return error_stats(np.linalg.norm(res.est_p - res.est_truth_p, axis=1))
 
 
 def _cov_ne(urt21: Sequence[float]) -> np.ndarray:
     """The north-east block of a MAVLink 21-element pose covariance."""
     return urt21_to_covariance(urt21)[:2, :2]
-
-
-def covariance_consistency(err_ne: np.ndarray, cov_ne: np.ndarray) -> dict[str, float | int]:
-    """Does the estimator know how wrong it is? err_ne: (N, 2) horizontal errors against the truth (m);
-    cov_ne: (N, 2, 2) the covariance each estimate came with. Returns, over the estimates with a usable
-    covariance: count, the mean reported 1-sigma (root of the trace, m), the mean and median normalised
-    error squared (NEES, 2 dof: 2 on average when the covariance is right) and the fraction of errors inside
-    the estimate's own 95 % ellipse (0.95 when right; lower = over-confident)."""
-    err_ne = np.asarray(err_ne, float).reshape(-1, 2)
-    cov_ne = np.asarray(cov_ne, float).reshape(-1, 2, 2)
-    ok = np.all(np.isfinite(cov_ne), axis=(1, 2)) & (np.linalg.det(np.nan_to_num(cov_ne)) > 0)
-    if not ok.any():
-        return {"count": 0}
-    e, c = err_ne[ok], cov_ne[ok]
-    nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(c), e)
-    return {
-        "count": int(ok.sum()),
-        "sigma_mean_m": float(np.mean(np.sqrt(c[:, 0, 0] + c[:, 1, 1]))),
-        "nees_mean": float(np.mean(nees)),
-        "nees_median": float(np.median(nees)),
-        "within_95": float(np.mean(nees <= CHI2_2DOF_95)),
-    }
 
 
 def save_result(res: SimResult, out_dir: Path, cfg: SimConfig, traj: Trajectory) -> dict[str, Any]:

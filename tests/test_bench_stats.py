@@ -154,7 +154,7 @@ def test_ekf_patch_summary_pairs_each_variant_with_sift_only() -> None:
 
 
 def test_covariance_consistency_scores_a_right_and_an_over_confident_covariance() -> None:
-    from sim_bridge.sim import CHI2_2DOF_95, covariance_consistency
+    from companion.metrics import CHI2_2DOF_95, covariance_consistency
 
     assert CHI2_2DOF_95 == pytest.approx(5.991, abs=1e-3)
     rng = np.random.default_rng(4)

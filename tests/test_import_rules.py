@@ -13,7 +13,7 @@ MATH_FILES = [
     p
     for pkg in ("georef", "vo", "lba", "ekf", "estimators")
     for p in sorted((ROOT / "companion" / pkg).rglob("*.py"))
-] + [ROOT / "companion/geometry.py", ROOT / "companion/types.py"]
+] + [ROOT / "companion/geometry.py", ROOT / "companion/types.py", ROOT / "companion/metrics.py"]
 FORBIDDEN_IN_MATH = (
     "zenoh",
     "pymavlink",
