@@ -45,10 +45,14 @@ def log_paths(template: str, start_time_s: float | None = None) -> tuple[Path, P
 
 class EstimateLog:
     """Appends estimates to the CSV and TUM files of ``template`` (``log_paths``). Raises OSError at
-    construction when they cannot be created (a wrong path fails at start, not in flight)."""
+    construction when they cannot be created (a wrong path fails at start, not in flight).
 
-    def __init__(self, template: str) -> None:
+    tum_outcomes: the outcomes whose estimates go into the TUM file (the daemon's: those sent; an offline
+    replay, which sends nothing, writes ``would_send``)."""
+
+    def __init__(self, template: str, tum_outcomes: tuple[str, ...] = ("sent",)) -> None:
         self.csv_path, self.tum_path = log_paths(template)
+        self.tum_outcomes = tuple(tum_outcomes)
         self.csv_path.parent.mkdir(parents=True, exist_ok=True)
         new = not self.csv_path.exists() or self.csv_path.stat().st_size == 0
         self._csv: TextIO = open(self.csv_path, "a", buffering=1)  # noqa: SIM115 - open for the daemon's life
@@ -69,7 +73,7 @@ class EstimateLog:
             self._csv.write(
                 f"{t:.6f},{values},{est.quality:.4g},{est.status.value},{outcome},{est.reset_counter}\n"
             )
-            if outcome == "sent":
+            if outcome in self.tum_outcomes:
                 q = Rotation.from_euler("ZYX", rpy[::-1]).as_quat()  # R_world_body; scipy order x y z w
                 self._tum.write(f"{t:.6f} " + " ".join(f"{v:.6f}" for v in (*p, *q)) + "\n")
             self.lines += 1
