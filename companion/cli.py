@@ -4,6 +4,7 @@
     companion check-config configs/sim_mars.toml
     companion check-autopilot --config configs/vehicle_serial_geotiff.toml [--timeout 15]
     companion watch --connect tcp/192.168.1.10:7447 [--count N] [--json]
+    companion replay runs/flight-bag --config configs/europa_dual_ekf.toml [--out runs/replay]
 
 ``--set`` overrides one key of the file (dotted path, TOML/JSON value), e.g.
 ``--set mavlink.connection='"serial:/dev/ttyAMA0:921600"'`` or ``--set estimator.kind='"georef"'``.
@@ -13,6 +14,10 @@ what each means for us (``companion.io.autopilot_params``); exit 0 when nothing 
 using the estimates (warnings included), 1 on an error or no autopilot heard, 2 configuration error.
 watch prints the status line of a running daemon from anywhere its Zenoh network reaches (the JSON it
 publishes on ``companion/status``); exit 1 when none arrives within ``--timeout``.
+replay runs the configured estimator over a recorded flight (rosbag2: images, and the IMU, range finder,
+odometry and ground truth as ROS messages; ``companion.replay``) as fast as the machine goes, writes the
+estimates log and prints the error against the truth when the bag has one; exit 0 when it ran, 2 when the
+bag or its topics do not fit the configuration.
 """
 
 from __future__ import annotations
@@ -331,6 +336,97 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     return 0
 
 
+def replay_overrides(a: Any) -> dict[str, str]:
+    """``companion replay``'s topic options as ``companion.replay.choose_topics`` overrides."""
+    ov: dict[str, str] = {}
+    for item in a.camera_topic:
+        cam, sep, topic = item.partition("=")
+        if not sep or not cam or not topic.startswith("/"):
+            raise ValueError(f"--camera-topic {item!r}: expected CAMERA=/topic")
+        ov[f"camera:{cam}"] = topic
+    for name in ("imu", "range", "odometry", "truth"):
+        v = getattr(a, f"{name}_topic")
+        if v is not None:
+            ov[name] = v
+    return ov
+
+
+def _print_replay(s: Any) -> None:
+    print(
+        f"bag {s.bag}: {s.flight_s:.1f} s of flight, {s.frame_sets} frame sets in {s.wall_s:.1f} s "
+        f"({s.ms_per_frame_set:.1f} ms per set in the estimator)"
+    )
+    for k, n in sorted(s.messages.items()):
+        print(f"  {k:10s} {n:7d} messages")
+    if s.bad:
+        print(f"  skipped bad messages: {', '.join(f'{k} {v}' for k, v in sorted(s.bad.items()))}")
+    missing = [k for k in ("imu", "range", "odometry", "truth") if not s.topics.get(k)]
+    if missing:
+        print(f"  not in the bag: {', '.join(missing)}")
+    ns = ", ".join(f"{k} {v}" for k, v in sorted(s.not_sent.items())) or "none"
+    print(
+        f"  estimates {s.estimates}: would be sent {s.would_send}; not: {ns}; estimator errors {s.estimator_errors}"
+    )
+    for w in s.estimator.get("warnings", {}).values():
+        print(f"  warning: {w}")
+    e = s.error_m
+    if e and e.get("count"):
+        c = s.covariance_consistency or {}
+        print(
+            f"  error against the truth over {e['count']} estimates: mean {e['mean']:.3f} m, median "
+            f"{e['median']:.3f}, p95 {e['p95']:.3f}, max {e['max']:.3f}, final {e['final']:.3f} m "
+            f"over {s.distance_m:.1f} m flown"
+        )
+        if c.get("count"):
+            print(
+                f"  its own 1-sigma {c['sigma_mean_m']:.3f} m; errors inside their 95 % ellipse "
+                f"{100 * c['within_95']:.0f} % (NEES {c['nees_mean']:.2f}, 2 when right)"
+            )
+    elif s.topics.get("truth"):
+        print("  no estimate to compare with the truth")
+    print(f"  estimates log: {s.estimates_csv} (TUM: {s.estimates_tum})")
+
+
+def cmd_replay(cfg: CompanionConfig, a: Any) -> int:
+    """``companion replay``: 0 when the flight was replayed, 2 when the bag or its topics do not fit."""
+    from rosbags.rosbag2 import ReaderError
+
+    from companion.factory import build_estimator
+    from companion.replay import ReplayError, replay_bag
+
+    configure_opencv(cfg.daemon.opencv_threads)
+    try:
+        overrides = replay_overrides(a)
+        estimator = build_estimator(cfg)
+    except (ValueError, OSError) as e:
+        print(f"companion: {e}", file=sys.stderr)
+        return 2
+    next_s = [0.0]
+
+    def progress(s: Any, flight_s: float) -> None:
+        if flight_s >= next_s[0]:
+            next_s[0] += 10.0
+            print(
+                f"  t {flight_s:6.1f} s  frame sets {s.frame_sets:5d}  estimates {s.estimates:5d}", flush=True
+            )
+
+    print(f"replaying {a.bag} through {cfg.estimator.kind} ({', '.join(estimator.cameras)})", flush=True)
+    try:
+        summary = replay_bag(a.bag, cfg, estimator, a.out, overrides, progress)
+    except ReplayError as e:
+        print(f"companion: {e}", file=sys.stderr)
+        return 2
+    except (ReaderError, FileNotFoundError) as e:
+        print(f"companion: cannot read the bag {a.bag}: {e}", file=sys.stderr)
+        return 2
+    _print_replay(summary)
+    with open(f"{a.out}/replay_summary.json", "w") as f:
+        json.dump(summary.as_dict(), f, indent=2, default=float)
+    if a.json:
+        print(json.dumps(summary.as_dict(), default=float))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="companion", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -360,6 +456,32 @@ def main(argv: list[str] | None = None) -> int:
     pw.add_argument("--count", type=int, default=0, help="stop after this many messages (0: until Ctrl-C)")
     pw.add_argument("--timeout", type=float, default=10.0, help="give up after this long without a message")
     pw.add_argument("--json", action="store_true", help="print the whole JSON status instead of the line")
+    pp = sub.add_parser(
+        "replay", help="run the configured estimator over a recorded flight (rosbag2), as fast as it goes"
+    )
+    pp.add_argument("bag", help="bag directory (MCAP or sqlite3), e.g. from python -m sim_bridge flight-bag")
+    pp.add_argument("--config", required=True, help="TOML configuration file (cameras, estimator)")
+    pp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one key")
+    pp.add_argument("--out", default="runs/replay", help="directory of the estimates log (%(default)s)")
+    pp.add_argument(
+        "--camera-topic",
+        action="append",
+        default=[],
+        metavar="CAMERA=TOPIC",
+        help="a camera's image topic (default: its configured key as a topic, /uav/camera/visible)",
+    )
+    for name, what in (
+        ("imu", "sensor_msgs/Imu"),
+        ("range", "sensor_msgs/Range"),
+        ("odometry", "nav_msgs/Odometry (the start)"),
+        ("truth", "geometry_msgs/PoseStamped ground truth"),
+    ):
+        pp.add_argument(
+            f"--{name}-topic",
+            default=None,
+            help=f"{what} topic (default: the bag's only one; '' = do not use)",
+        )
+    pp.add_argument("--json", action="store_true", help="print the whole summary as JSON at the end")
     a = ap.parse_args(argv)
     if a.cmd == "watch":
         return cmd_watch(a.connect, a.key, a.count, a.timeout, a.json)
@@ -377,6 +499,9 @@ def main(argv: list[str] | None = None) -> int:
         except (ValueError, OSError) as e:
             print(f"companion: cannot open {cfg.mavlink.connection}: {e}", file=sys.stderr)
             return 1
+    if a.cmd == "replay":
+        _setup_logging("WARNING")
+        return cmd_replay(cfg, a)
     _setup_logging(cfg.daemon.log_level)
     try:
         return cmd_run(cfg)

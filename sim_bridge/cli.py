@@ -6,6 +6,8 @@
   prints the error table at the end (computed with evo) and writes a plot and TUM trajectories;
 - ``record`` / ``replay``: Zenoh camera frames to and from rosbag2 (MCAP) bags, ``recover``: a readable bag
   from one whose recorder was killed (sim_bridge.recording);
+- ``flight-bag``: a simulated Europa flight written as a rosbag2 with its IMU, range finder, odometry and
+  truth, for ``companion replay`` (sim_bridge.flight_bag);
 - ``sitl-camera``: the nadir camera for an ArduPilot / PX4 SITL (sim_bridge.sitl_bridge, deploy/SITL.md).
 """
 
@@ -186,9 +188,11 @@ def main(argv: list[str] | None = None) -> int:
     pd.add_argument("--estimator", default="terrain_lba", choices=["georef", "terrain_lba"])
     pd.add_argument("--out", default=None, help="run directory (default runs/demo-<time>)")
     pd.add_argument("--config", default="configs/sim_mars.toml", help="companion config template")
+    from sim_bridge.flight_bag import add_flight_bag_parser
     from sim_bridge.recording import add_record_parser, add_recover_parser, add_replay_parser
     from sim_bridge.sitl_bridge import add_sitl_camera_parser
 
+    add_flight_bag_parser(sub)
     add_record_parser(sub)
     add_replay_parser(sub)
     add_recover_parser(sub)
@@ -197,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr
     )
-    if getattr(a, "func", None) is not None:  # record / replay / recover / sitl-camera
+    if getattr(a, "func", None) is not None:  # flight-bag / record / replay / recover / sitl-camera
         return int(a.func(a))
     if a.cmd == "sim":
         if a.zenoh_listen is None:

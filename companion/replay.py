@@ -1,0 +1,360 @@
+"""Offline replay of a recorded flight through the configured estimator (``companion replay``).
+
+A researcher with a recording (rosbag2, MCAP or sqlite3) of a flight wants to run the estimator on it again
+on a bench: after changing a setting, on another machine, as fast as the machine goes and with the same
+result every time. ``python -m sim_bridge replay`` publishes a bag's images on Zenoh for a live daemon, in
+real time; that serves the terrain estimators, which need only the images and the attitude. The
+visible + thermal EKF also needs the autopilot's IMU and range finder, which reach a live daemon over
+MAVLink and which a vehicle's bag holds as ROS messages. This module reads all of them from the bag and
+drives the estimator the way the daemon does:
+
+- images (``sensor_msgs/msg/Image`` / ``CompressedImage``) are decoded by the daemon's decoder and paired by
+  capture time in the daemon's ``FrameHandoff`` (one camera or a synchronised pair);
+- every IMU, range, odometry sample stamped at or before a frame set reaches the estimator before it, in
+  stamp order (what the daemon's inbox gives when the telemetry is on time);
+- each estimate is written to an estimates log in the daemon's format (``estimates.csv``; the TUM file holds
+  those the daemon would have sent) and, when the bag has a ground-truth pose topic, compared with it.
+
+Frame conventions of the ROS messages: ``companion.io.ros_msgs``. The samples are stamped by their header
+stamps (the bag must hold every sensor in one clock, as a ROS 2 system's header stamps are).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rosbags.rosbag2 import Reader
+from scipy.spatial.transform import Rotation
+
+from companion.config import CompanionConfig
+from companion.handoff import FrameHandoff
+from companion.io import ros_msgs
+from companion.io.frames import COMPRESSED_MSGTYPE, IMAGE_MSGTYPE, FrameError, decode_frame
+from companion.metrics import covariance_consistency, error_stats
+from companion.types import AltimeterSample, AttitudeSample, Estimator, ImuSample, LocalPositionSample
+
+log = logging.getLogger(__name__)
+
+Sample = AttitudeSample | ImuSample | AltimeterSample | LocalPositionSample
+
+
+class ReplayError(ValueError):
+    """The bag cannot be replayed with this configuration (a topic missing or ambiguous); the message says
+    what to pass."""
+
+
+@dataclass(frozen=True)
+class ReplayTopics:
+    """The bag's topics each input comes from. ``None``: that input is not in the bag."""
+
+    images: dict[str, str]
+    """camera name (the config's) -> image topic"""
+    imu: str | None = None
+    range: str | None = None
+    odometry: str | None = None
+    truth: str | None = None
+
+
+def _only_topic(types: dict[str, str], msgtype: str, what: str, option: str) -> str | None:
+    found = sorted(t for t, m in types.items() if m == msgtype)
+    if len(found) > 1:
+        raise ReplayError(f"{len(found)} {what} topics ({', '.join(found)}): choose one with {option}")
+    return found[0] if found else None
+
+
+def choose_topics(
+    types: dict[str, str],
+    cfg: CompanionConfig,
+    cameras: tuple[str, ...],
+    overrides: dict[str, str] | None = None,
+) -> ReplayTopics:
+    """Which topic of the bag (``types``: topic -> message type) feeds which input.
+
+    Images: each camera's configured key as a topic (``uav/camera/visible`` -> ``/uav/camera/visible``, how
+    zenoh-bridge-ros2dds names it), unless ``overrides["camera:<name>"]`` names another. IMU, range,
+    odometry, truth: ``overrides["imu" | "range" | "odometry" | "truth"]`` or the bag's only topic of that type
+    (an empty override string: do not use it). Raises ReplayError naming what is missing or ambiguous."""
+    ov = dict(overrides or {})
+    images: dict[str, str] = {}
+    for cam in cameras:
+        topic = ov.get(f"camera:{cam}") or "/" + cfg.cameras[cam].key.lstrip("/")
+        want = COMPRESSED_MSGTYPE if cfg.cameras[cam].message == "compressed" else IMAGE_MSGTYPE
+        if types.get(topic) not in (IMAGE_MSGTYPE, COMPRESSED_MSGTYPE):
+            have = sorted(t for t, m in types.items() if m in (IMAGE_MSGTYPE, COMPRESSED_MSGTYPE))
+            raise ReplayError(
+                f"camera {cam!r}: no {want} topic {topic} in the bag (image topics: {', '.join(have) or 'none'});"
+                f" name it with --camera-topic {cam}=/topic"
+            )
+        images[cam] = topic
+    picked: dict[str, str | None] = {}
+    for name, msgtype in (
+        ("imu", ros_msgs.IMU_MSGTYPE),
+        ("range", ros_msgs.RANGE_MSGTYPE),
+        ("odometry", ros_msgs.ODOMETRY_MSGTYPE),
+        ("truth", ros_msgs.POSE_MSGTYPE),
+    ):
+        if name in ov:
+            chosen = ov[name] or None
+            if chosen is not None and types.get(chosen) != msgtype:
+                raise ReplayError(
+                    f"--{name}-topic {chosen}: not a {msgtype} topic of the bag ({types.get(chosen)})"
+                )
+            picked[name] = chosen
+        else:
+            picked[name] = _only_topic(types, msgtype, msgtype, f"--{name}-topic")
+    return ReplayTopics(images, picked["imu"], picked["range"], picked["odometry"], picked["truth"])
+
+
+@dataclass
+class ReplaySummary:
+    """What a replay read, what the estimator made of it and, with a truth topic, how right it was."""
+
+    bag: str
+    topics: dict[str, Any]
+    messages: dict[str, int] = field(default_factory=dict)
+    """Messages used per input (images per camera, imu, range, odometry, truth)."""
+    bad: dict[str, int] = field(default_factory=dict)
+    """Messages skipped, by input and reason (``imu:bad_message``, ``visible:truncated``, ...)."""
+    frame_sets: int = 0
+    frames_unpaired: int = 0
+    estimates: int = 0
+    would_send: int = 0
+    not_sent: dict[str, int] = field(default_factory=dict)
+    estimator_errors: int = 0
+    estimator: dict[str, Any] = field(default_factory=dict)
+    wall_s: float = 0.0
+    flight_s: float = 0.0
+    ms_per_frame_set: float = float("nan")
+    error_m: dict[str, Any] | None = None
+    covariance_consistency: dict[str, Any] | None = None
+    distance_m: float | None = None
+    estimates_csv: str = ""
+    estimates_tum: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def _count(d: dict[str, int], key: str) -> None:
+    d[key] = d.get(key, 0) + 1
+
+
+def _decode_sample(msgtype: str, raw: bytes) -> list[Sample]:
+    """One telemetry message -> the samples it gives (an Imu with an orientation gives two)."""
+    msg = ros_msgs.TYPESTORE.deserialize_cdr(raw, msgtype)
+    if msgtype == ros_msgs.IMU_MSGTYPE:
+        r = ros_msgs.imu_reading(msg)
+        return [r.imu] if r.attitude is None else [r.imu, r.attitude]
+    if msgtype == ros_msgs.RANGE_MSGTYPE:
+        return [ros_msgs.altimeter_sample(msg)]
+    return [ros_msgs.local_position_sample(msg)]
+
+
+def _read_telemetry(
+    reader: Reader, conns: dict[str, Any], summary: ReplaySummary
+) -> tuple[list[Sample], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every IMU / range / odometry sample, sorted by stamp, and the truth (stamps us, positions NED,
+    attitude quaternions x y z w of R_world_body)."""
+    samples: list[Sample] = []
+    t_truth: list[int] = []
+    p_truth: list[np.ndarray] = []
+    q_truth: list[np.ndarray] = []
+    names = {c.topic: name for name, c in conns.items()}
+    for conn, _log_ns, raw in reader.messages(connections=list(conns.values())):
+        name = names[conn.topic]
+        try:
+            if name == "truth":
+                t, p, R = ros_msgs.pose_ned(ros_msgs.TYPESTORE.deserialize_cdr(bytes(raw), conn.msgtype))
+                if not np.all(np.isfinite(p)):
+                    raise ValueError("non-finite position")
+                t_truth.append(t)
+                p_truth.append(p)
+                q_truth.append(Rotation.from_matrix(R).as_quat())  # R_world_body, x y z w as TUM wants
+            else:
+                samples.extend(_decode_sample(conn.msgtype, bytes(raw)))
+        except Exception as exc:  # noqa: BLE001 - a bad message of any kind is counted and skipped
+            _count(summary.bad, f"{name}:bad_message")
+            log.debug("replay: %s: skipped: %s", conn.topic, exc)
+            continue
+        _count(summary.messages, name)
+    samples.sort(key=lambda s: s.stamp_us)
+    order = np.argsort(np.array(t_truth, dtype=np.int64), kind="stable")
+    truth = (
+        np.array(t_truth, dtype=np.int64)[order],
+        np.array(p_truth, float).reshape(-1, 3)[order],
+        np.array(q_truth, float).reshape(-1, 4)[order],
+    )
+    return samples, truth
+
+
+def _image_frames(reader: Reader, conns: dict[str, Any], summary: ReplaySummary) -> Iterator[Any]:
+    """Decoded frames in the bag's order; undecodable ones counted by camera and reason."""
+    cams = {c.topic: cam for cam, c in conns.items()}
+    seq: dict[str, int] = {}
+    for conn, _log_ns, raw in reader.messages(connections=list(conns.values())):
+        cam = cams[conn.topic]
+        seq[cam] = seq.get(cam, 0) + 1
+        try:
+            frame = decode_frame(bytes(raw), cam, compressed=conn.msgtype == COMPRESSED_MSGTYPE, seq=seq[cam])
+        except FrameError as exc:
+            _count(summary.bad, f"{cam}:{exc.reason}")
+            continue
+        _count(summary.messages, cam)
+        yield frame
+
+
+def _outcome(est: Any) -> str:
+    if est.is_sendable():
+        return "would_send"
+    return f"status_{est.status.value}" if est.status.value != "ok" else "not_finite"
+
+
+def replay_bag(
+    bag: str | Path,
+    cfg: CompanionConfig,
+    estimator: Estimator,
+    out_dir: str | Path,
+    overrides: dict[str, str] | None = None,
+    progress: Callable[[ReplaySummary, float], None] | None = None,
+) -> ReplaySummary:
+    """Run ``estimator`` over the flight in ``bag`` as fast as it goes. Writes ``out_dir/estimates.csv`` and
+    ``.tum`` (and ``truth.tum`` with a truth topic). ``progress(summary, flight_s)`` after each frame set.
+    Raises ReplayError (topics), rosbags' ReaderError / FileNotFoundError (the bag cannot be opened)."""
+    from companion.io.estimate_log import EstimateLog
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cams = tuple(estimator.cameras)
+    tol_us = int(cfg.estimator.ekf.pair_tolerance_ms * 1000)
+    handoff = FrameHandoff(cams, pair_tolerance_us=tol_us)
+    with Reader(Path(bag)) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        topics = choose_topics(types, cfg, cams, overrides)
+        by_topic = {c.topic: c for c in reader.connections}
+        summary = ReplaySummary(
+            str(bag),
+            {
+                **{f"camera:{k}": v for k, v in topics.images.items()},
+                "imu": topics.imu,
+                "range": topics.range,
+                "odometry": topics.odometry,
+                "truth": topics.truth,
+            },
+        )
+        tele = {n: by_topic[t] for n in ("imu", "range", "odometry", "truth") if (t := getattr(topics, n))}
+        samples, (t_truth, p_truth, q_truth) = _read_telemetry(reader, tele, summary)
+        if not samples and not len(t_truth):
+            log.warning("replay: no telemetry in %s: the estimator sees images only", bag)
+        elog = EstimateLog(str(out / "estimates"), tum_outcomes=("would_send",))
+        rows: list[tuple[int, np.ndarray, np.ndarray]] = []
+        k = 0
+        spent = 0.0
+        t_first: int | None = None
+        wall0 = time.perf_counter()
+        try:
+            for frame in _image_frames(reader, {c: by_topic[t] for c, t in topics.images.items()}, summary):
+                handoff.put(frame)
+                fs = handoff.take(timeout_s=0.0)
+                if fs is None:
+                    continue
+                stamp = max(f.stamp_us for f in fs.values())
+                while k < len(samples) and samples[k].stamp_us <= stamp:
+                    _feed(estimator, samples[k])
+                    k += 1
+                summary.frame_sets += 1
+                t_first = stamp if t_first is None else t_first
+                t0 = time.perf_counter()
+                try:
+                    est = estimator.on_frames(fs)
+                except Exception:  # noqa: BLE001 - as the daemon: count, log, go on with the next frame set
+                    summary.estimator_errors += 1
+                    log.exception(
+                        "estimator failed on frame set at %s", {c: f.stamp_us for c, f in fs.items()}
+                    )
+                    continue
+                finally:
+                    spent += time.perf_counter() - t0
+                summary.flight_s = (stamp - t_first) * 1e-6
+                if est is not None:
+                    summary.estimates += 1
+                    outcome = _outcome(est)
+                    elog.write(est, outcome)
+                    if outcome == "would_send":
+                        summary.would_send += 1
+                        rows.append(
+                            (est.stamp_us, np.asarray(est.p_body_in_world_m, float), est.covariance[:2, :2])
+                        )
+                    else:
+                        _count(summary.not_sent, outcome)
+                else:
+                    _count(summary.not_sent, "no_estimate")
+                if progress is not None:
+                    progress(summary, summary.flight_s)
+        finally:
+            elog.close()
+            estimator.close()
+    summary.wall_s = time.perf_counter() - wall0
+    summary.ms_per_frame_set = 1000.0 * spent / summary.frame_sets if summary.frame_sets else float("nan")
+    summary.frames_unpaired = handoff.counters.dropped_unpaired
+    summary.estimator = {
+        k: dict(v)
+        for k in ("counters", "no_fix_reasons", "warnings")
+        if isinstance(v := getattr(estimator, k, None), dict)
+    }
+    summary.estimates_csv, summary.estimates_tum = str(elog.csv_path), str(elog.tum_path)
+    if len(t_truth) >= 2:
+        _compare(summary, rows, t_truth, p_truth, q_truth, out)
+    return summary
+
+
+def _feed(estimator: Estimator, s: Sample) -> None:
+    if isinstance(s, ImuSample):
+        estimator.on_imu(s)
+    elif isinstance(s, AltimeterSample):
+        estimator.on_altimeter(s)
+    elif isinstance(s, AttitudeSample):
+        estimator.on_attitude(s)
+    else:
+        estimator.on_local_position(s)
+
+
+def truth_at(t_truth: np.ndarray, p_truth: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+    """Truth positions interpolated linearly at ``t_us``; NaN outside the truth's time span."""
+    t_us = np.asarray(t_us, np.int64)
+    out = np.stack([np.interp(t_us, t_truth, p_truth[:, i]) for i in range(3)], axis=1)
+    out[(t_us < t_truth[0]) | (t_us > t_truth[-1])] = np.nan
+    return out
+
+
+def _compare(
+    summary: ReplaySummary,
+    rows: list[tuple[int, np.ndarray, np.ndarray]],
+    t_truth: np.ndarray,
+    p_truth: np.ndarray,
+    q_truth: np.ndarray,
+    out: Path,
+) -> None:
+    """Errors of the estimates that would have been sent against the truth at their own stamps (no
+    alignment: both are in the world frame), their covariance's consistency, the path length; truth.tum."""
+    with open(out / "truth.tum", "w") as f:
+        for t, p, q in zip(t_truth, p_truth, q_truth, strict=True):
+            f.write(f"{t * 1e-6:.6f} " + " ".join(f"{v:.6f}" for v in (*p, *q)) + "\n")
+    if not rows:
+        summary.error_m = {"count": 0}
+        return
+    t = np.array([r[0] for r in rows], np.int64)
+    p = np.stack([r[1] for r in rows])
+    cov = np.stack([r[2] for r in rows])
+    pt = truth_at(t_truth, p_truth, t)
+    ok = np.all(np.isfinite(pt), axis=1)
+    e = p[ok] - pt[ok]
+    summary.error_m = error_stats(np.linalg.norm(e, axis=1))
+    summary.covariance_consistency = covariance_consistency(e[:, :2], cov[ok])
+    inside = (t_truth >= t[0]) & (t_truth <= t[-1])
+    summary.distance_m = float(np.sum(np.linalg.norm(np.diff(p_truth[inside], axis=0), axis=1)))
