@@ -277,6 +277,16 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
         log.info("recording estimates in %s and %s", estimate_log.csv_path, estimate_log.tum_path)
     tol_us = int(cfg.estimator.ekf.pair_tolerance_ms * 1000)
     handoff = FrameHandoff(tuple(estimator.cameras), pair_tolerance_us=tol_us)
+    recorder = None
+    if cfg.daemon.record_inputs:
+        from companion.io.input_recorder import InputRecorder
+
+        # OSError: a wrong or existing path fails here, at start
+        recorder = InputRecorder(
+            cfg.daemon.record_inputs, {c: "/" + cfg.cameras[c].key.lstrip("/") for c in estimator.cameras}
+        )
+        log.info("recording the estimator's inputs in %s (companion replay reads it)", recorder.path)
+
     offset = cfg.cameras[estimator_cameras(cfg)[0]].position_in_body_m
     link = AutopilotLinkAdapter(link_config(cfg), cfg.origin, camera_offset_m=offset)
     z = cfg.zenoh
@@ -316,6 +326,7 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
         publish_status=publish_status,
         frame_counters=frame_counters,
         estimate_log=estimate_log,
+        input_recorder=recorder,
     )
 
     def on_signal(signum: int, _frame: object) -> None:
@@ -344,7 +355,7 @@ def replay_overrides(a: Any) -> dict[str, str]:
         if not sep or not cam or not topic.startswith("/"):
             raise ValueError(f"--camera-topic {item!r}: expected CAMERA=/topic")
         ov[f"camera:{cam}"] = topic
-    for name in ("imu", "range", "odometry", "truth"):
+    for name in ("imu", "attitude", "range", "odometry", "truth"):
         v = getattr(a, f"{name}_topic")
         if v is not None:
             ov[name] = v
@@ -361,6 +372,7 @@ def _print_replay(s: Any) -> None:
     if s.bad:
         print(f"  skipped bad messages: {', '.join(f'{k} {v}' for k, v in sorted(s.bad.items()))}")
     missing = [k for k in ("imu", "range", "odometry", "truth") if not s.topics.get(k)]
+    missing += [] if s.messages.get("attitude") else ["attitude"]
     if missing:
         print(f"  not in the bag: {', '.join(missing)}")
     ns = ", ".join(f"{k} {v}" for k, v in sorted(s.not_sent.items())) or "none"
@@ -412,7 +424,7 @@ def cmd_replay(cfg: CompanionConfig, a: Any) -> int:
 
     print(f"replaying {a.bag} through {cfg.estimator.kind} ({', '.join(estimator.cameras)})", flush=True)
     try:
-        summary = replay_bag(a.bag, cfg, estimator, a.out, overrides, progress)
+        summary = replay_bag(a.bag, cfg, estimator, a.out, overrides, progress, a.order)
     except ReplayError as e:
         print(f"companion: {e}", file=sys.stderr)
         return 2
@@ -472,6 +484,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     for name, what in (
         ("imu", "sensor_msgs/Imu"),
+        ("attitude", "geometry_msgs/QuaternionStamped (default: the Imu's orientation)"),
         ("range", "sensor_msgs/Range"),
         ("odometry", "nav_msgs/Odometry (the start)"),
         ("truth", "geometry_msgs/PoseStamped ground truth"),
@@ -481,6 +494,13 @@ def main(argv: list[str] | None = None) -> int:
             default=None,
             help=f"{what} topic (default: the bag's only one; '' = do not use)",
         )
+    pp.add_argument(
+        "--order",
+        default="arrival",
+        choices=["arrival", "stamp"],
+        help="samples fed before a frame set: those received before it (arrival, default: what the daemon "
+        "saw; a daemon's own recording replays to its estimates) or those stamped before it (stamp)",
+    )
     pp.add_argument("--json", action="store_true", help="print the whole summary as JSON at the end")
     a = ap.parse_args(argv)
     if a.cmd == "watch":

@@ -93,6 +93,17 @@ class AutopilotLink(Protocol):
     def stop(self) -> None: ...
 
 
+class InputSink(Protocol):
+    """Where the daemon records its inputs (``companion.io.input_recorder.InputRecorder``): each autopilot
+    sample with its arrival time, each frame set the estimator took with the time its samples were drained."""
+
+    def put(self, item: Any, log_us: int) -> None: ...
+
+    def status(self) -> dict[str, Any]: ...
+
+    def close(self) -> None: ...
+
+
 class EstimateSink(Protocol):
     """Where the daemon records each estimate and its outcome (``companion.io.estimate_log.EstimateLog``)."""
 
@@ -149,6 +160,7 @@ class Daemon:
         frame_counters: Callable[[], dict[str, Any]] | None = None,
         inbox_size: int = 4096,
         estimate_log: EstimateSink | None = None,
+        input_recorder: InputSink | None = None,
     ) -> None:
         self.estimator = estimator
         self.handoff = handoff
@@ -170,6 +182,7 @@ class Daemon:
         self._rate_prev: tuple[float, int, int] | None = None
         self.last_estimate: PoseEstimate | None = None
         self.estimate_log = estimate_log
+        self.input_recorder = input_recorder
 
     # -- inputs from the link thread -----------------------------------------------------------------
     def _enqueue(self, sample: Sample) -> None:
@@ -178,11 +191,18 @@ class Daemon:
                 self._inbox.popleft()
                 self.counters.samples_dropped += 1
             self._inbox.append(sample)
+            # arrival time taken under the inbox lock: a sample recorded as arriving before a drain's time
+            # is one that drain took (the recording then replays in the order the estimator saw)
+            arrival_us = now_us()
+        if self.input_recorder is not None:
+            self.input_recorder.put(sample, arrival_us)
 
-    def _drain_inbox(self) -> None:
+    def _drain_inbox(self) -> int:
+        """Feed the estimator every sample that has arrived, in stamp order; returns the drain's time (us)."""
         with self._inbox_lock:
             items = list(self._inbox)
             self._inbox.clear()
+            drained_us = now_us()
         for s in sorted(items, key=lambda s: s.stamp_us):
             if isinstance(s, AttitudeSample):
                 self.estimator.on_attitude(s)
@@ -192,6 +212,7 @@ class Daemon:
                 self.estimator.on_altimeter(s)
             else:
                 self.estimator.on_local_position(s)
+        return drained_us
 
     # -- lifecycle ----------------------------------------------------------------------------------
     def start(self) -> None:
@@ -214,6 +235,8 @@ class Daemon:
             log.exception("estimator close failed")
         if self.estimate_log is not None:
             self.estimate_log.close()
+        if self.input_recorder is not None:
+            self.input_recorder.close()
         st = self.status()
         log.info("companion stopped: %s", self.status_line(st))
         log.info("totals: sent %d, not sent %s, estimator %s", st["sent"], st["not_sent"], st["estimator"])
@@ -228,7 +251,10 @@ class Daemon:
             frames = self.handoff.take(timeout_s=0.2)
             if frames is None:
                 continue
-            self._drain_inbox()
+            drained_us = self._drain_inbox()
+            if self.input_recorder is not None:
+                for frame in frames.values():
+                    self.input_recorder.put(frame, drained_us)
             self.process(frames)
 
     def process(self, frames: dict[str, Frame]) -> PoseEstimate | None:
@@ -306,6 +332,7 @@ class Daemon:
             "frames": self.frame_counters(),
             "link": self.link.status(),
             "estimates_log": None if self.estimate_log is None else self.estimate_log.status(),
+            "inputs_record": None if self.input_recorder is None else self.input_recorder.status(),
             "estimator": {
                 k: dict(v)
                 for k in ("counters", "no_fix_reasons", "warnings")

@@ -10,7 +10,7 @@ drives the estimator the way the daemon does:
 
 - images (``sensor_msgs/msg/Image`` / ``CompressedImage``) are decoded by the daemon's decoder and paired by
   capture time in the daemon's ``FrameHandoff`` (one camera or a synchronised pair);
-- every IMU, range, odometry sample stamped at or before a frame set reaches the estimator before it, in
+- every IMU, attitude, range, odometry sample stamped at or before a frame set reaches the estimator before it, in
   stamp order (what the daemon's inbox gives when the telemetry is on time);
 - each estimate is written to an estimates log in the daemon's format (``estimates.csv``; the TUM file holds
   those the daemon would have sent) and, when the bag has a ground-truth pose topic, compared with it.
@@ -37,7 +37,7 @@ from companion.handoff import FrameHandoff
 from companion.io import ros_msgs
 from companion.io.frames import COMPRESSED_MSGTYPE, IMAGE_MSGTYPE, FrameError, decode_frame
 from companion.metrics import covariance_consistency, error_stats
-from companion.types import AltimeterSample, AttitudeSample, Estimator, ImuSample, LocalPositionSample
+from companion.types import AltimeterSample, AttitudeSample, Estimator, Frame, ImuSample, LocalPositionSample
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +56,8 @@ class ReplayTopics:
     images: dict[str, str]
     """camera name (the config's) -> image topic"""
     imu: str | None = None
+    attitude: str | None = None
+    """a QuaternionStamped topic; without one, the Imu messages' orientation gives the attitude"""
     range: str | None = None
     odometry: str | None = None
     truth: str | None = None
@@ -77,9 +79,9 @@ def choose_topics(
     """Which topic of the bag (``types``: topic -> message type) feeds which input.
 
     Images: each camera's configured key as a topic (``uav/camera/visible`` -> ``/uav/camera/visible``, how
-    zenoh-bridge-ros2dds names it), unless ``overrides["camera:<name>"]`` names another. IMU, range,
-    odometry, truth: ``overrides["imu" | "range" | "odometry" | "truth"]`` or the bag's only topic of that type
-    (an empty override string: do not use it). Raises ReplayError naming what is missing or ambiguous."""
+    zenoh-bridge-ros2dds names it), unless ``overrides["camera:<name>"]`` names another. IMU, attitude,
+    range, odometry, truth: ``overrides["imu" | "attitude" | "range" | "odometry" | "truth"]`` or the bag's
+    only topic of that type (an empty override string: do not use it). Raises ReplayError naming what is missing or ambiguous."""
     ov = dict(overrides or {})
     images: dict[str, str] = {}
     for cam in cameras:
@@ -95,6 +97,7 @@ def choose_topics(
     picked: dict[str, str | None] = {}
     for name, msgtype in (
         ("imu", ros_msgs.IMU_MSGTYPE),
+        ("attitude", ros_msgs.QUATERNION_MSGTYPE),
         ("range", ros_msgs.RANGE_MSGTYPE),
         ("odometry", ros_msgs.ODOMETRY_MSGTYPE),
         ("truth", ros_msgs.POSE_MSGTYPE),
@@ -108,7 +111,7 @@ def choose_topics(
             picked[name] = chosen
         else:
             picked[name] = _only_topic(types, msgtype, msgtype, f"--{name}-topic")
-    return ReplayTopics(images, picked["imu"], picked["range"], picked["odometry"], picked["truth"])
+    return ReplayTopics(images, **picked)
 
 
 @dataclass
@@ -145,12 +148,15 @@ def _count(d: dict[str, int], key: str) -> None:
     d[key] = d.get(key, 0) + 1
 
 
-def _decode_sample(msgtype: str, raw: bytes) -> list[Sample]:
-    """One telemetry message -> the samples it gives (an Imu with an orientation gives two)."""
+def _decode_sample(msgtype: str, raw: bytes, imu_attitude: bool) -> list[Sample]:
+    """One telemetry message -> the samples it gives (an Imu with an orientation gives two, unless
+    ``imu_attitude`` is False: the attitude comes from its own topic)."""
     msg = ros_msgs.TYPESTORE.deserialize_cdr(raw, msgtype)
     if msgtype == ros_msgs.IMU_MSGTYPE:
         r = ros_msgs.imu_reading(msg)
-        return [r.imu] if r.attitude is None else [r.imu, r.attitude]
+        return [r.imu] if r.attitude is None or not imu_attitude else [r.imu, r.attitude]
+    if msgtype == ros_msgs.QUATERNION_MSGTYPE:
+        return [ros_msgs.attitude_sample(msg)]
     if msgtype == ros_msgs.RANGE_MSGTYPE:
         return [ros_msgs.altimeter_sample(msg)]
     return [ros_msgs.local_position_sample(msg)]
@@ -158,15 +164,15 @@ def _decode_sample(msgtype: str, raw: bytes) -> list[Sample]:
 
 def _read_telemetry(
     reader: Reader, conns: dict[str, Any], summary: ReplaySummary
-) -> tuple[list[Sample], tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Every IMU / range / odometry sample, sorted by stamp, and the truth (stamps us, positions NED,
+) -> tuple[list[tuple[int, Sample]], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every IMU / attitude / range / odometry sample with its log time (ns), in log-time order, and the truth (stamps us, positions NED,
     attitude quaternions x y z w of R_world_body)."""
-    samples: list[Sample] = []
+    samples: list[tuple[int, Sample]] = []
     t_truth: list[int] = []
     p_truth: list[np.ndarray] = []
     q_truth: list[np.ndarray] = []
     names = {c.topic: name for name, c in conns.items()}
-    for conn, _log_ns, raw in reader.messages(connections=list(conns.values())):
+    for conn, log_ns, raw in reader.messages(connections=list(conns.values())):
         name = names[conn.topic]
         try:
             if name == "truth":
@@ -177,13 +183,16 @@ def _read_telemetry(
                 p_truth.append(p)
                 q_truth.append(Rotation.from_matrix(R).as_quat())  # R_world_body, x y z w as TUM wants
             else:
-                samples.extend(_decode_sample(conn.msgtype, bytes(raw)))
+                got = _decode_sample(conn.msgtype, bytes(raw), "attitude" not in conns)
+                samples.extend((int(log_ns), g) for g in got)
+                if name == "imu" and len(got) == 2:
+                    _count(summary.messages, "attitude")
         except Exception as exc:  # noqa: BLE001 - a bad message of any kind is counted and skipped
             _count(summary.bad, f"{name}:bad_message")
             log.debug("replay: %s: skipped: %s", conn.topic, exc)
             continue
         _count(summary.messages, name)
-    samples.sort(key=lambda s: s.stamp_us)
+    samples.sort(key=lambda s: s[0])  # log-time order (stable: an Imu's two samples stay together)
     order = np.argsort(np.array(t_truth, dtype=np.int64), kind="stable")
     truth = (
         np.array(t_truth, dtype=np.int64)[order],
@@ -193,11 +202,14 @@ def _read_telemetry(
     return samples, truth
 
 
-def _image_frames(reader: Reader, conns: dict[str, Any], summary: ReplaySummary) -> Iterator[Any]:
-    """Decoded frames in the bag's order; undecodable ones counted by camera and reason."""
+def _image_frames(
+    reader: Reader, conns: dict[str, Any], summary: ReplaySummary
+) -> Iterator[tuple[Frame, int]]:
+    """Decoded frames with their log times (ns) in the bag's order; undecodable ones counted by camera and
+    reason."""
     cams = {c.topic: cam for cam, c in conns.items()}
     seq: dict[str, int] = {}
-    for conn, _log_ns, raw in reader.messages(connections=list(conns.values())):
+    for conn, log_ns, raw in reader.messages(connections=list(conns.values())):
         cam = cams[conn.topic]
         seq[cam] = seq.get(cam, 0) + 1
         try:
@@ -206,7 +218,7 @@ def _image_frames(reader: Reader, conns: dict[str, Any], summary: ReplaySummary)
             _count(summary.bad, f"{cam}:{exc.reason}")
             continue
         _count(summary.messages, cam)
-        yield frame
+        yield frame, int(log_ns)
 
 
 def _outcome(est: Any) -> str:
@@ -222,12 +234,21 @@ def replay_bag(
     out_dir: str | Path,
     overrides: dict[str, str] | None = None,
     progress: Callable[[ReplaySummary, float], None] | None = None,
+    order: str = "arrival",
 ) -> ReplaySummary:
     """Run ``estimator`` over the flight in ``bag`` as fast as it goes. Writes ``out_dir/estimates.csv`` and
     ``.tum`` (and ``truth.tum`` with a truth topic). ``progress(summary, flight_s)`` after each frame set.
+
+    order: which samples reach the estimator before a frame set. "arrival": those logged (received) before the
+    set's frames were, in stamp order (what a live daemon does with its inbox; a recording made by the
+    daemon, ``daemon.record_inputs``, logs each frame set when the estimator took it, so its replay gives the
+    daemon's own estimates). "stamp": every sample stamped at or before the frame set (telemetry always on
+    time, as the benchmark feeds its filter).
     Raises ReplayError (topics), rosbags' ReaderError / FileNotFoundError (the bag cannot be opened)."""
     from companion.io.estimate_log import EstimateLog
 
+    if order not in ("arrival", "stamp"):
+        raise ValueError(f"order {order!r}: expected arrival or stamp")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cams = tuple(estimator.cameras)
@@ -242,31 +263,47 @@ def replay_bag(
             {
                 **{f"camera:{k}": v for k, v in topics.images.items()},
                 "imu": topics.imu,
+                "attitude": topics.attitude,
                 "range": topics.range,
                 "odometry": topics.odometry,
                 "truth": topics.truth,
             },
         )
-        tele = {n: by_topic[t] for n in ("imu", "range", "odometry", "truth") if (t := getattr(topics, n))}
+        tele = {
+            n: by_topic[t]
+            for n in ("imu", "attitude", "range", "odometry", "truth")
+            if (t := getattr(topics, n))
+        }
         samples, (t_truth, p_truth, q_truth) = _read_telemetry(reader, tele, summary)
         if not samples and not len(t_truth):
             log.warning("replay: no telemetry in %s: the estimator sees images only", bag)
+        if order == "stamp":
+            samples.sort(key=lambda x: x[1].stamp_us)
         elog = EstimateLog(str(out / "estimates"), tum_outcomes=("would_send",))
         rows: list[tuple[int, np.ndarray, np.ndarray]] = []
+        frame_log: dict[tuple[str, int], int] = {}
         k = 0
         spent = 0.0
         t_first: int | None = None
         wall0 = time.perf_counter()
         try:
-            for frame in _image_frames(reader, {c: by_topic[t] for c, t in topics.images.items()}, summary):
+            image_conns = {c: by_topic[t] for c, t in topics.images.items()}
+            for frame, log_ns in _image_frames(reader, image_conns, summary):
+                frame_log[(frame.camera, frame.seq)] = log_ns
                 handoff.put(frame)
                 fs = handoff.take(timeout_s=0.0)
                 if fs is None:
                     continue
                 stamp = max(f.stamp_us for f in fs.values())
-                while k < len(samples) and samples[k].stamp_us <= stamp:
-                    _feed(estimator, samples[k])
+                set_log = max(frame_log.pop((f.camera, f.seq)) for f in fs.values())
+                batch: list[Sample] = []
+                while k < len(samples) and (
+                    samples[k][0] <= set_log if order == "arrival" else samples[k][1].stamp_us <= stamp
+                ):
+                    batch.append(samples[k][1])
                     k += 1
+                for sample in sorted(batch, key=lambda x: x.stamp_us):  # stable, as the daemon's inbox
+                    _feed(estimator, sample)
                 summary.frame_sets += 1
                 t_first = stamp if t_first is None else t_first
                 t0 = time.perf_counter()

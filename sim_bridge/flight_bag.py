@@ -33,7 +33,6 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from companion.geometry import rot_from_rpy, rpy_from_rot
 from companion.io import ros_msgs
 from companion.io.frames import IMAGE_MSGTYPE, encode_image
-from sim_bridge.recording import ROSBAG_VERSION
 
 START_US = 1_798_761_600_000_000
 """Stamp of the flight's first instant (2027-01-01 00:00 UTC): fixed, so a bag is the same every time."""
@@ -113,7 +112,7 @@ def write_flight_bag(
     events.sort()
 
     plugin = StoragePlugin.MCAP if o.storage == "mcap" else StoragePlugin.SQLITE3
-    writer = Writer(Path(out), version=ROSBAG_VERSION, storage_plugin=plugin)
+    writer = Writer(Path(out), version=ros_msgs.ROSBAG_VERSION, storage_plugin=plugin)
     writer.open()
     ts = ros_msgs.TYPESTORE
     conns = {

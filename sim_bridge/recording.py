@@ -41,6 +41,7 @@ from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_typestore
 
 from companion.io.frames import COMPRESSED_MSGTYPE, IMAGE_MSGTYPE, FrameError, decode_frame
+from companion.io.ros_msgs import ROSBAG_VERSION
 from companion.io.zenoh_io import wall_clock_us
 
 log = logging.getLogger(__name__)
@@ -52,8 +53,6 @@ STRING_MSGTYPE: Final = "std_msgs/msg/String"
 """ROS 2 type the companion's JSON status line is recorded as."""
 IMAGE_MSGTYPES: Final = (IMAGE_MSGTYPE, COMPRESSED_MSGTYPE)
 """Message types the replayer publishes."""
-ROSBAG_VERSION: Final = 8
-"""rosbag2 metadata version written: 8 is read by ROS 2 Humble and later (9 needs Jazzy)."""
 
 _CDR_HEADERS: Final = (b"\x00\x00", b"\x00\x01")  # CDR big / little endian encapsulation
 

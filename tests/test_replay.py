@@ -213,3 +213,82 @@ def test_replay_command_prints_the_error_and_writes_its_summary(
     summary = json.loads((out / "replay_summary.json").read_text())
     assert summary["topics"]["range"] is None and summary["estimator"]["counters"]["altimeter_updates"] == 0
     assert summary["estimator"]["counters"]["frames_without_altimeter"] > 0
+
+
+# -- the daemon's record of its inputs ----------------------------------------------------------------------
+
+
+def test_input_recorder_writes_what_the_replay_reads_back(tmp_path: Path) -> None:
+    from companion.io.input_recorder import InputRecorder
+    from companion.replay import _decode_sample
+    from companion.types import AltimeterSample, AttitudeSample, Frame, ImuSample, LocalPositionSample
+
+    rec = InputRecorder(str(tmp_path / "rec-{time}"), {"visible": "/uav/camera/visible"})
+    img = (np.arange(480 * 640) % 251).astype(np.uint8).reshape(480, 640)
+    items: list[tuple[Any, int]] = [
+        (ImuSample(1_000, np.array([0.1, -0.2, -1.3]), np.array([0.01, 0.02, -0.03])), 1_500),
+        (AttitudeSample(2_000, 0.05, -0.04, 2.9), 2_100),
+        (AltimeterSample(3_000, 71.25), 3_050),
+        (AltimeterSample(3_100, float("nan")), 3_150),
+        (LocalPositionSample(4_000, np.array([10.0, -20.0, -70.0]), np.array([1.0, 0.5, -0.2])), 4_010),
+        (Frame(5_000, "visible", img), 6_000),
+        (Frame(5_000, "thermal", img), 6_000),  # not a recorded camera: ignored
+    ]
+    for item, log_us in items:
+        rec.put(item, log_us)
+    rec.close()
+    assert rec.status()["messages"] == {
+        "imu": 1,
+        "attitude": 1,
+        "range": 2,
+        "local_position": 1,
+        "visible": 1,
+    }
+    (bag,) = tmp_path.glob("rec-*")
+    got: list[tuple[int, Any]] = []
+    with Reader(bag) as r:
+        for conn, log_ns, raw in r.messages():
+            if conn.msgtype == "sensor_msgs/msg/Image":
+                from companion.io.frames import decode_image
+
+                f = decode_image(bytes(raw), "visible")
+                assert f.stamp_us == 5_000 and log_ns == 6_000_000 and np.array_equal(f.image, img)
+                continue
+            got += [(log_ns, s) for s in _decode_sample(conn.msgtype, bytes(raw), True)]
+    got.sort(key=lambda x: x[0])
+    assert [g[0] for g in got] == [1_500_000, 2_100_000, 3_050_000, 3_150_000, 4_010_000]
+    imu, att, alt, no_return, lp = (g[1] for g in got)
+    np.testing.assert_array_equal(imu.accel_mps2, [0.1, -0.2, -1.3])
+    np.testing.assert_array_equal(imu.gyro_rps, [0.01, 0.02, -0.03])
+    assert (att.roll_rad, att.pitch_rad, att.yaw_rad) == pytest.approx((0.05, -0.04, 2.9), abs=1e-12)
+    assert alt.range_m == 71.25 and np.isnan(no_return.range_m)
+    np.testing.assert_array_equal(lp.p_ned_m, [10.0, -20.0, -70.0])
+    np.testing.assert_array_equal(lp.v_ned_mps, [1.0, 0.5, -0.2])
+    with pytest.raises(OSError, match="exists"):
+        InputRecorder(str(bag), {"visible": "/uav/camera/visible"})
+
+
+def test_input_recorder_drops_and_counts_when_the_disk_falls_behind(tmp_path: Path) -> None:
+    import threading
+
+    from companion.io.input_recorder import InputRecorder
+    from companion.types import AltimeterSample
+
+    rec = InputRecorder(str(tmp_path / "rec"), {}, queue_size=4)
+    # a disk that stalls: the bag's own write waits until released, so the queue fills
+    disk = threading.Event()
+    write = rec._writer.write
+
+    def stalled(*args: Any) -> None:
+        disk.wait(10.0)
+        write(*args)
+
+    rec._writer.write = stalled  # type: ignore[method-assign,assignment]
+    for i in range(50):
+        rec.put(AltimeterSample(i, 10.0), i)  # never blocks the caller
+    dropped = rec.status()["dropped"]
+    disk.set()
+    rec.close()
+    st = rec.status()
+    assert 40 <= dropped <= 46 and st["dropped"] == dropped
+    assert st["messages"]["range"] + dropped == 50 and st["errors"] == 0

@@ -30,8 +30,11 @@ IMU_MSGTYPE: Final = "sensor_msgs/msg/Imu"
 RANGE_MSGTYPE: Final = "sensor_msgs/msg/Range"
 ODOMETRY_MSGTYPE: Final = "nav_msgs/msg/Odometry"
 POSE_MSGTYPE: Final = "geometry_msgs/msg/PoseStamped"
+QUATERNION_MSGTYPE: Final = "geometry_msgs/msg/QuaternionStamped"
 
 TYPESTORE: Final = get_typestore(Stores.ROS2_HUMBLE)
+ROSBAG_VERSION: Final = 8
+"""rosbag2 metadata version written: 8 is read by ROS 2 Humble and later (9 needs Jazzy)."""
 
 T_FLU_FRD: Final = np.diag([1.0, -1.0, -1.0])
 """v_frd = T v_flu (and back: the matrix is its own inverse)."""
@@ -106,9 +109,16 @@ def imu_reading(msg: Any) -> ImuReading:
     return ImuReading(ImuSample(t, acc, gyr), att)
 
 
+def attitude_sample(msg: Any) -> AttitudeSample:
+    """``geometry_msgs/msg/QuaternionStamped`` (the body in the header's world frame: FRD in NED when that
+    ends in ``_ned``, else FLU in ENU) -> attitude sample."""
+    r, p, y = rpy_from_rot(rot_ned_frd(_quat(msg.quaternion), world_is_ned(msg.header.frame_id)))
+    return AttitudeSample(stamp_us(msg.header), float(r), float(p), float(y))
+
+
 def altimeter_sample(msg: Any) -> AltimeterSample:
     """``sensor_msgs/msg/Range`` -> range (m); outside [min_range, max_range] or infinite (ROS's "no return")
-    becomes NaN, which the estimators read as no return."""
+    becomes NaN, which the estimators read as no return. A limit of 0 is taken as not given."""
     r = float(msg.range)
     lo, hi = float(msg.min_range), float(msg.max_range)
     ok = math.isfinite(r) and (lo <= 0 or r >= lo) and (hi <= 0 or r <= hi)
@@ -116,19 +126,19 @@ def altimeter_sample(msg: Any) -> AltimeterSample:
 
 
 def local_position_sample(msg: Any) -> LocalPositionSample:
-    """``nav_msgs/msg/Odometry`` -> NED position and velocity. The twist is in the child (body) frame, per
-    the message's definition, so the velocity is turned into the world by the pose's orientation."""
+    """``nav_msgs/msg/Odometry`` -> NED position and velocity. The twist is in the child frame, per the
+    message's definition: the body, whose velocity the pose's orientation turns into the world; or, when the
+    child frame is the world frame itself, the world."""
     ned = world_is_ned(msg.header.frame_id)
-    frd = body_is_frd(msg.child_frame_id)
     p = _vec(msg.pose.pose.position)
-    R_wb = Rotation.from_quat(
-        _quat(msg.pose.pose.orientation)
-    ).as_matrix()  # body in world, either convention
-    v_world = R_wb @ _vec(msg.twist.twist.linear)
-    if ned != frd:
-        raise ValueError(
-            f"odometry in {msg.header.frame_id!r} with a {msg.child_frame_id!r} body: mixed conventions"
-        )
+    v_world = _vec(msg.twist.twist.linear)
+    if msg.child_frame_id != msg.header.frame_id:
+        if ned != body_is_frd(msg.child_frame_id):
+            raise ValueError(
+                f"odometry in {msg.header.frame_id!r} with a {msg.child_frame_id!r} body: mixed conventions"
+            )
+        R_wb = Rotation.from_quat(_quat(msg.pose.pose.orientation)).as_matrix()  # body in world
+        v_world = R_wb @ v_world
     if not ned:
         p, v_world = T_ENU_NED @ p, T_ENU_NED @ v_world
     if not (np.all(np.isfinite(p)) and np.all(np.isfinite(v_world))):
@@ -245,6 +255,32 @@ def odometry_cdr(
         ),
     )
     return bytes(TYPESTORE.serialize_cdr(msg, ODOMETRY_MSGTYPE))
+
+
+def odometry_world_twist_cdr(t_us: int, p_ned: np.ndarray, v_ned: np.ndarray) -> bytes:
+    """A CDR ``nav_msgs/msg/Odometry`` of a position and velocity without attitude (LOCAL_POSITION_NED): the
+    child frame is the world (``map_ned``), so the twist is the NED velocity; orientation identity."""
+    msg = _T[ODOMETRY_MSGTYPE](
+        header=_header(t_us, "map_ned"),
+        child_frame_id="map_ned",
+        pose=_T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=_T["geometry_msgs/msg/Pose"](
+                position=_pt(p_ned), orientation=_q(np.array([0.0, 0.0, 0.0, 1.0]))
+            ),
+            covariance=np.zeros(36),
+        ),
+        twist=_T["geometry_msgs/msg/TwistWithCovariance"](
+            twist=_T["geometry_msgs/msg/Twist"](linear=_v3(v_ned), angular=_v3(np.zeros(3))),
+            covariance=np.zeros(36),
+        ),
+    )
+    return bytes(TYPESTORE.serialize_cdr(msg, ODOMETRY_MSGTYPE))
+
+
+def quaternion_cdr(t_us: int, R_ned_frd: np.ndarray) -> bytes:
+    """A CDR ``geometry_msgs/msg/QuaternionStamped``: the FRD body in NED (``map_ned``)."""
+    msg = _T[QUATERNION_MSGTYPE](header=_header(t_us, "map_ned"), quaternion=_q(ros_quat(R_ned_frd, True)))
+    return bytes(TYPESTORE.serialize_cdr(msg, QUATERNION_MSGTYPE))
 
 
 def pose_cdr(t_us: int, p_ned: np.ndarray, R_ned_frd: np.ndarray, ned_frd: bool) -> bytes:

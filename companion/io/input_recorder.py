@@ -1,0 +1,166 @@
+"""The daemon's record of its inputs (``daemon.record_inputs``): every frame set the estimator took and every
+autopilot sample that reached its inbox, in one rosbag2 (MCAP) that ``companion replay`` runs the estimator
+over again on a bench, giving the estimates the daemon made.
+
+A vehicle that runs the companion without ROS has no other record of what its estimator saw: the frames
+come over Zenoh and the IMU, attitude, range and local position over MAVLink. Here they are written as ROS
+messages, all in the companion's clock. Header stamps are what the estimator was given (the frames' capture
+times, the samples' stamps mapped from the autopilot's clock); log times are when: a sample's arrival in the
+inbox, a frame's hand-over to the estimator (after the inbox was drained for it). Replayed in log-time order,
+each frame set meets the samples the daemon had fed before it. Frames the daemon skipped (the estimator
+busy) are not in the record:
+
+- each camera's frames on its topic (the configured key with a leading ``/``), ``sensor_msgs/msg/Image``
+  (mono8 / mono16 as decoded: a compressed camera is stored lossless, larger);
+- ``/companion/imu``: ``sensor_msgs/msg/Imu``, FRD (``base_link_frd``), no orientation (covariance -1);
+- ``/companion/attitude``: ``geometry_msgs/msg/QuaternionStamped``, the FRD body in NED (``map_ned``);
+- ``/companion/range``: ``sensor_msgs/msg/Range`` (NaN, no return, as +inf);
+- ``/companion/local_position``: ``nav_msgs/msg/Odometry`` with the twist in the world frame
+  (``child_frame_id`` = ``map_ned``; the autopilot's LOCAL_POSITION_NED has no attitude).
+
+The daemon's threads only enqueue (a bounded queue: when the disk falls behind, samples are dropped and
+counted, never waited for); one writer thread encodes and writes. A write that fails is counted and logged
+once. Close it to write the bag's metadata; a bag whose daemon was killed is rebuilt with
+``python -m sim_bridge recover``.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.errors import WriterError
+
+from companion.geometry import rot_from_rpy
+from companion.io import ros_msgs
+from companion.io.frames import IMAGE_MSGTYPE, encode_image
+from companion.types import AltimeterSample, AttitudeSample, Frame, ImuSample, LocalPositionSample
+
+log = logging.getLogger(__name__)
+
+IMU_TOPIC = "/companion/imu"
+ATTITUDE_TOPIC = "/companion/attitude"
+RANGE_TOPIC = "/companion/range"
+LOCAL_POSITION_TOPIC = "/companion/local_position"
+
+Item = Frame | ImuSample | AttitudeSample | AltimeterSample | LocalPositionSample
+
+
+def inputs_path(template: str, start_time_s: float | None = None) -> Path:
+    """The bag directory of ``template``: ``{time}`` becomes the local start time (YYYYmmdd-HHMMSS)."""
+    return Path(template.replace("{time}", time.strftime("%Y%m%d-%H%M%S", time.localtime(start_time_s))))
+
+
+class InputRecorder:
+    """Records frames and samples into a new bag at ``inputs_path(template)``. Raises OSError at construction
+    when it cannot be created (an existing path, a read-only disk): at start, not in flight.
+
+    camera_topics: camera name -> ROS topic of its frames.
+    """
+
+    def __init__(self, template: str, camera_topics: dict[str, str], queue_size: int = 2048) -> None:
+        self.path = inputs_path(template)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self._writer = Writer(
+                self.path, version=ros_msgs.ROSBAG_VERSION, storage_plugin=StoragePlugin.MCAP
+            )
+            self._writer.open()
+        except WriterError as exc:  # the path exists: refuse to mix two flights
+            raise OSError(f"inputs record {self.path}: {exc}") from exc
+        ts = ros_msgs.TYPESTORE
+        self._conns: dict[str, Any] = {
+            cam: self._writer.add_connection(topic, IMAGE_MSGTYPE, typestore=ts)
+            for cam, topic in camera_topics.items()
+        }
+        for key, topic, msgtype in (
+            ("imu", IMU_TOPIC, ros_msgs.IMU_MSGTYPE),
+            ("attitude", ATTITUDE_TOPIC, ros_msgs.QUATERNION_MSGTYPE),
+            ("range", RANGE_TOPIC, ros_msgs.RANGE_MSGTYPE),
+            ("local_position", LOCAL_POSITION_TOPIC, ros_msgs.ODOMETRY_MSGTYPE),
+        ):
+            self._conns[key] = self._writer.add_connection(topic, msgtype, typestore=ts)
+        self._queue: queue.Queue[tuple[Item, int] | None] = queue.Queue(maxsize=queue_size)
+        self._lock = threading.Lock()
+        self.messages: dict[str, int] = {}
+        self.bytes = 0
+        self.dropped = 0
+        self.errors = 0
+        self._closed = False
+        self._thread = threading.Thread(target=self._write_loop, name="input-recorder", daemon=True)
+        self._thread.start()
+
+    # -- any thread ---------------------------------------------------------------------------------------
+    def put(self, item: Item, log_us: int) -> None:
+        """Enqueue a frame or a sample with its log time (us, companion clock); never blocks (a full queue
+        drops it and counts it)."""
+        if isinstance(item, Frame) and item.camera not in self._conns:
+            return
+        try:
+            self._queue.put_nowait((item, int(log_us)))
+        except queue.Full:
+            with self._lock:
+                self.dropped += 1
+
+    def status(self) -> dict[str, Any]:
+        with self._lock:
+            return {
+                "path": str(self.path),
+                "messages": dict(self.messages),
+                "mbytes": round(self.bytes / 1e6, 1),
+                "dropped": self.dropped,
+                "errors": self.errors,
+            }
+
+    def close(self) -> None:
+        """Write what is queued, then the bag's metadata. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._queue.put(None)
+        self._thread.join(timeout=30.0)
+        try:
+            self._writer.close()
+        except (WriterError, OSError) as exc:
+            log.error("inputs record %s: cannot close: %s", self.path, exc)
+
+    # -- the writer thread -------------------------------------------------------------------------------
+    def _encode(self, item: Item) -> tuple[str, bytes]:
+        if isinstance(item, Frame):
+            return item.camera, encode_image(item.image, item.stamp_us, frame_id=f"{item.camera}_camera")
+        if isinstance(item, ImuSample):
+            return "imu", ros_msgs.imu_cdr(item.stamp_us, item.accel_mps2, item.gyro_rps, None, True)
+        if isinstance(item, AttitudeSample):
+            R = rot_from_rpy(item.roll_rad, item.pitch_rad, item.yaw_rad)
+            return "attitude", ros_msgs.quaternion_cdr(item.stamp_us, R)
+        if isinstance(item, AltimeterSample):
+            return "range", ros_msgs.range_cdr(item.stamp_us, item.range_m, 0.0, 0.0, True)
+        return "local_position", ros_msgs.odometry_world_twist_cdr(
+            item.stamp_us, np.asarray(item.p_ned_m, float), np.asarray(item.v_ned_mps, float)
+        )
+
+    def _write_loop(self) -> None:
+        while True:
+            got = self._queue.get()
+            if got is None:
+                return
+            item, log_us = got
+            try:
+                key, payload = self._encode(item)
+                self._writer.write(self._conns[key], log_us * 1000, payload)
+            except (WriterError, OSError, ValueError) as exc:  # disk full, a sample that cannot be encoded
+                with self._lock:
+                    self.errors += 1
+                    first = self.errors == 1
+                if first:
+                    log.error("inputs record %s: %s (counting further failures)", self.path, exc)
+                continue
+            with self._lock:
+                self.messages[key] = self.messages.get(key, 0) + 1
+                self.bytes += len(payload)
