@@ -287,7 +287,7 @@ class DaemonConfig(_Strict):
     estimates_log: str = ""
     # record what the estimator is given (camera frames, IMU, attitude, range, local position) as a rosbag2
     # (MCAP) directory for ``companion replay``; "{time}" in the path is the start time; "" = off
-    # (``companion.io.input_recorder``; ~1.2 MB/s for the Europa camera pair at 2 Hz)
+    # (``companion.io.input_recorder``; ~1.8 MB/s for the Europa camera pair at 2 Hz)
     record_inputs: str = ""
     # threads OpenCV may use inside one call (cv2.setNumThreads), 0 = its default, one per core. One saves CPU
     # per frame for the rest of the companion (the terrain back-end, Zenoh, MAVLink) at the same latency with
