@@ -283,7 +283,9 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
 
         # OSError: a wrong or existing path fails here, at start
         recorder = InputRecorder(
-            cfg.daemon.record_inputs, {c: "/" + cfg.cameras[c].key.lstrip("/") for c in estimator.cameras}
+            cfg.daemon.record_inputs,
+            {c: "/" + cfg.cameras[c].key.lstrip("/") for c in estimator.cameras},
+            config_json=cfg.model_dump_json(),
         )
         log.info("recording the estimator's inputs in %s (companion replay reads it)", recorder.path)
 
@@ -347,6 +349,21 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     return 0
 
 
+def _config_of_record(bag: str) -> CompanionConfig:
+    """The configuration recorded in a daemon's input record; ConfigError when there is none."""
+    from rosbags.rosbag2 import ReaderError
+
+    from companion.replay import config_from_bag
+
+    try:
+        cfg = config_from_bag(bag)
+    except (ReaderError, FileNotFoundError, ValueError) as e:
+        raise ConfigError(f"cannot read the configuration recorded in {bag}: {e}") from None
+    if cfg is None:
+        raise ConfigError(f"{bag} holds no recorded configuration (not a daemon's record): pass --config")
+    return cfg
+
+
 def replay_overrides(a: Any) -> dict[str, str]:
     """``companion replay``'s topic options as ``companion.replay.choose_topics`` overrides."""
     ov: dict[str, str] = {}
@@ -407,6 +424,10 @@ def cmd_replay(cfg: CompanionConfig, a: Any) -> int:
     from companion.replay import ReplayError, replay_bag
 
     configure_opencv(cfg.daemon.opencv_threads)
+    lba = cfg.estimator.terrain_lba
+    fixed = cfg.estimator.kind == "terrain_lba" and a.rate <= 0 and lba.backend_apply == "when_ready"
+    if fixed:  # as fast as it goes, "when ready" depends on the machine: use the adjustment at a fixed delay
+        cfg = apply_overrides(cfg, ['estimator.terrain_lba.backend_apply="fixed_delay"'], "companion replay")
     try:
         overrides = replay_overrides(a)
         estimator = build_estimator(cfg)
@@ -422,10 +443,19 @@ def cmd_replay(cfg: CompanionConfig, a: Any) -> int:
                 f"  t {flight_s:6.1f} s  frame sets {s.frame_sets:5d}  estimates {s.estimates:5d}", flush=True
             )
 
-    print(f"replaying {a.bag} through {cfg.estimator.kind} ({', '.join(estimator.cameras)})", flush=True)
+    pace = "as fast as it goes" if a.rate <= 0 else f"at x{a.rate:g} the recorded pace"
+    print(
+        f"replaying {a.bag} through {cfg.estimator.kind} ({', '.join(estimator.cameras)}), {pace}", flush=True
+    )
+    if fixed:
+        print(
+            f"  terrain_lba: each adjustment used {lba.backend_delay_frames} frames after its key frame "
+            "(backend_apply fixed_delay), so every replay gives the same estimates; in flight it was used when "
+            "ready: --rate 1 replays at the flight's pace with it"
+        )
     try:
-        summary = replay_bag(a.bag, cfg, estimator, a.out, overrides, progress, a.order)
-    except ReplayError as e:
+        summary = replay_bag(a.bag, cfg, estimator, a.out, overrides, progress, a.order, a.rate)
+    except (ReplayError, ValueError) as e:
         print(f"companion: {e}", file=sys.stderr)
         return 2
     except (ReaderError, FileNotFoundError) as e:
@@ -472,7 +502,11 @@ def main(argv: list[str] | None = None) -> int:
         "replay", help="run the configured estimator over a recorded flight (rosbag2), as fast as it goes"
     )
     pp.add_argument("bag", help="bag directory (MCAP or sqlite3), e.g. from python -m sim_bridge flight-bag")
-    pp.add_argument("--config", required=True, help="TOML configuration file (cameras, estimator)")
+    pp.add_argument(
+        "--config",
+        default=None,
+        help="TOML configuration file (cameras, estimator); default: the one a daemon's record holds",
+    )
     pp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one key")
     pp.add_argument("--out", default="runs/replay", help="directory of the estimates log (%(default)s)")
     pp.add_argument(
@@ -501,6 +535,13 @@ def main(argv: list[str] | None = None) -> int:
         help="samples fed before a frame set: those received before it (arrival, default: what the daemon "
         "saw; a daemon's own recording replays to its estimates) or those stamped before it (stamp)",
     )
+    pp.add_argument(
+        "--rate",
+        type=float,
+        default=0.0,
+        help="0: as fast as it goes (default); 1: at the recorded pace (terrain_lba's back-end then has the "
+        "time it had in flight); 2: twice as fast, ...",
+    )
     pp.add_argument("--json", action="store_true", help="print the whole summary as JSON at the end")
     a = ap.parse_args(argv)
     if a.cmd == "watch":
@@ -508,7 +549,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if a.cmd == "check-config":
             return cmd_check(a.config, a.set)
-        cfg = apply_overrides(load_config(a.config), a.set, a.config)
+        if a.cmd == "replay" and a.config is None:
+            cfg = apply_overrides(_config_of_record(a.bag), a.set, a.bag)
+        else:
+            cfg = apply_overrides(load_config(a.config), a.set, a.config)
     except ConfigError as e:
         print(f"companion: {e}", file=sys.stderr)
         return 2

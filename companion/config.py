@@ -187,6 +187,13 @@ class TerrainLbaConfig(_Strict):
     # of 27 replayed Table 7 flights than 0 (docs/benchmarks.md, "Session 39")
     fix_bias_share: Annotated[float, Field(ge=0, lt=1)] = 0.5
     fix_bias_corr_keyframes: Annotated[float, Field(gt=0)] = 10.0
+    # when the adjustment's result (it runs in a worker process beside the frames) is used: "when_ready", at the
+    # first frame after it finishes (in flight: the lowest latency), or "fixed_delay", exactly
+    # backend_delay_frames frames after its key frame, waiting if it is late (the same estimates run after
+    # run, whatever the machine's load: what a bench replay at full speed wants; companion replay sets it
+    # when no --rate is given)
+    backend_apply: Literal["when_ready", "fixed_delay"] = "when_ready"
+    backend_delay_frames: Annotated[int, Field(ge=1, le=1000)] = 10
     # the autopilot's roll/pitch noise per sample (rad, 1 sigma, frame to frame), the source of the
     # adjustment's gravity prior per key frame: at 100 m a tilt error of 0.1 deg moves the camera 0.17 m
     # sideways for the same ground point (set from your AHRS)

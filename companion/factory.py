@@ -68,6 +68,8 @@ def build_estimator(cfg: CompanionConfig) -> Estimator:
             attitude_floor_sigma_rad=t.attitude_floor_sigma_rad,
             vo_tilt_sigma_rad=t.vo_tilt_sigma_rad,
             compass_sigma_rad=float(np.radians(t.compass_sigma_deg)),
+            backend_apply=t.backend_apply,
+            backend_delay_frames=t.backend_delay_frames,
         )
         lba_opt = replace(
             lba_opt,

@@ -21,6 +21,7 @@ stamps (the bag must hold every sensor in one clock, as a ROS 2 system's header 
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -61,6 +62,20 @@ class ReplayTopics:
     range: str | None = None
     odometry: str | None = None
     truth: str | None = None
+
+
+def config_from_bag(bag: str | Path, source: str = "") -> CompanionConfig | None:
+    """The configuration a daemon recorded in its input record (``/companion/config``), or None when the bag
+    has none. Raises ConfigError if it does not validate (a record from another version of the companion)."""
+    from companion.config import parse_config
+    from companion.io.input_recorder import CONFIG_TOPIC
+
+    with Reader(Path(bag)) as reader:
+        conns = [c for c in reader.connections if c.topic == CONFIG_TOPIC]
+        for _conn, _log_ns, raw in reader.messages(connections=conns):
+            msg: Any = ros_msgs.TYPESTORE.deserialize_cdr(bytes(raw), ros_msgs.STRING_MSGTYPE)
+            return parse_config(json.loads(msg.data), source or f"{bag}:{CONFIG_TOPIC}")
+    return None
 
 
 def _only_topic(types: dict[str, str], msgtype: str, what: str, option: str) -> str | None:
@@ -235,6 +250,7 @@ def replay_bag(
     overrides: dict[str, str] | None = None,
     progress: Callable[[ReplaySummary, float], None] | None = None,
     order: str = "arrival",
+    rate: float = 0.0,
 ) -> ReplaySummary:
     """Run ``estimator`` over the flight in ``bag`` as fast as it goes. Writes ``out_dir/estimates.csv`` and
     ``.tum`` (and ``truth.tum`` with a truth topic). ``progress(summary, flight_s)`` after each frame set.
@@ -244,11 +260,19 @@ def replay_bag(
     daemon, ``daemon.record_inputs``, logs each frame set when the estimator took it, so its replay gives the
     daemon's own estimates). "stamp": every sample stamped at or before the frame set (telemetry always on
     time, as the benchmark feeds its filter).
+
+    rate: 0 = as fast as the estimator goes; R > 0 = each frame set no earlier than its recorded (log) time
+    divided by R after the first. An estimator whose back-end runs beside the frames (``terrain_lba``: the
+    adjustment in its worker process, applied when ready) uses at each frame what its back-end has finished:
+    at ``rate=1`` the back-end has the time between frames it had in flight, as fast as possible less (its
+    results come more frames late).
     Raises ReplayError (topics), rosbags' ReaderError / FileNotFoundError (the bag cannot be opened)."""
     from companion.io.estimate_log import EstimateLog
 
     if order not in ("arrival", "stamp"):
         raise ValueError(f"order {order!r}: expected arrival or stamp")
+    if not rate >= 0:
+        raise ValueError(f"rate must be >= 0, got {rate}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cams = tuple(estimator.cameras)
@@ -282,6 +306,7 @@ def replay_bag(
         elog = EstimateLog(str(out / "estimates"), tum_outcomes=("would_send",))
         rows: list[tuple[int, np.ndarray, np.ndarray]] = []
         frame_log: dict[tuple[str, int], int] = {}
+        pace0: tuple[int, float] | None = None
         k = 0
         spent = 0.0
         t_first: int | None = None
@@ -302,6 +327,11 @@ def replay_bag(
                 ):
                     batch.append(samples[k][1])
                     k += 1
+                if rate > 0:
+                    pace0 = pace0 or (set_log, time.perf_counter())
+                    wait_s = pace0[1] + (set_log - pace0[0]) * 1e-9 / rate - time.perf_counter()
+                    if wait_s > 0:
+                        time.sleep(wait_s)
                 for sample in sorted(batch, key=lambda x: x.stamp_us):  # stable, as the daemon's inbox
                     _feed(estimator, sample)
                 summary.frame_sets += 1

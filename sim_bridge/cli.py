@@ -188,6 +188,11 @@ def main(argv: list[str] | None = None) -> int:
     pd.add_argument("--estimator", default="terrain_lba", choices=["georef", "terrain_lba"])
     pd.add_argument("--out", default=None, help="run directory (default runs/demo-<time>)")
     pd.add_argument("--config", default="configs/sim_mars.toml", help="companion config template")
+    pd.add_argument(
+        "--record-inputs",
+        action="store_true",
+        help="the companion records what its estimator is given (RUN/inputs, ~3.5 MB/s) for companion replay",
+    )
     from sim_bridge.flight_bag import add_flight_bag_parser
     from sim_bridge.recording import add_record_parser, add_recover_parser, add_replay_parser
     from sim_bridge.sitl_bridge import add_sitl_camera_parser

@@ -189,6 +189,8 @@ def run_demo(a: argparse.Namespace) -> int:
         "estimator.initial_yaw_deg": round(yaw0 + a.compass_offset, 3),
         "cameras.nadir.key": cfg.camera_key,
     }
+    if a.record_inputs:
+        overrides["daemon.record_inputs"] = str(run_dir / "inputs")
     if abs(a.compass_offset) > 30.0:  # beyond the default search: the vehicle's owner would set it
         overrides["estimator.terrain_lba.heading_search_deg"] = 180.0
         overrides["estimator.terrain_lba.compass_sigma_deg"] = 180.0
@@ -301,4 +303,9 @@ def run_demo(a: argparse.Namespace) -> int:
             f"ellipse: {100.0 * cons['within_95']:.0f} % of the estimates (95 % when it knows how wrong it is)"
         )
     print(f"wrote {truth.name}, {est.name} (TUM), {png.name}, ape.json in {run_dir}")
+    if a.record_inputs:
+        print(
+            f"the companion's inputs are in {run_dir / 'inputs'}; replay them on the bench at the flight's pace:\n"
+            f"  .venv/bin/companion replay {run_dir / 'inputs'} --rate 1 --out {run_dir / 'replay'}"
+        )
     return 0

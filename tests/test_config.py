@@ -172,6 +172,8 @@ def test_every_terrain_lba_key_reaches_the_estimator_options(tmp_path: Path) -> 
         "vo_tilt_sigma_rad": 0.002,
         "fix_bias_share": 0.5,
         "fix_bias_corr_keyframes": 20.0,
+        "backend_apply": "fixed_delay",
+        "backend_delay_frames": 7,
     }
     assert set(changed) == set(TerrainLbaConfig.model_fields)  # a new key must join here
     dem_path = tmp_path / "dem.npz"

@@ -25,6 +25,7 @@ import pytest
 from netutil import wait_for
 
 from companion.cli import apply_overrides, cmd_run
+from companion.cli import main as companion_main
 from companion.config import load_config
 from companion.io.dem_store import save_dem_npz
 from companion.io.frames import encode_image
@@ -130,6 +131,7 @@ def companion_config(
     zenoh_listen: list[str],
     estimator: str = "georef",
     estimates_log: str = "",
+    record_inputs: str = "",
 ):
     cfg = SimConfig(duration_s=60.0)
     s0 = make_trajectory(cfg, ground_m).state_at(0.0)
@@ -144,6 +146,7 @@ def companion_config(
         "estimator.initial_yaw_deg": yaw0,
         "daemon.log_level": "warning",
         "daemon.estimates_log": estimates_log,
+        "daemon.record_inputs": record_inputs,
     }
     return apply_overrides(
         load_config(ROOT / "configs/sim_mars.toml"), [f"{k}={json.dumps(v)}" for k, v in sets.items()], "test"
@@ -240,6 +243,7 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
         [f"tcp/127.0.0.1:{zcomp}"],
         case.estimator,
         estimates_log=str(tmp_path / "companion" / "estimates-{time}"),
+        record_inputs=str(tmp_path / "inputs") if case.estimator == "terrain_lba" else "",
     )
     daemon = threading.Thread(target=cmd_run, args=(cfg, stop), daemon=True)
     status: StatusWatch | None = None
@@ -310,6 +314,18 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
         cons = summary["covariance_consistency"]
         assert cons["count"] == accepted and cons["within_95"] >= WITHIN_95_MIN, cons
         assert st["sigma_h_m"] is not None and 0.0 < st["sigma_h_m"] < 10.0, st["sigma_h_m"]
+        # the daemon recorded its inputs; replayed at full speed (the adjustment used a fixed number of frames
+        # after its key frame) the flight gives the same estimates every time, as many as in flight
+        assert st["inputs_record"]["dropped"] == 0 and st["inputs_record"]["errors"] == 0, st["inputs_record"]
+        runs = []
+        for k in range(2):
+            out = tmp_path / f"replay{k}"
+            assert companion_main(["replay", str(tmp_path / "inputs"), "--out", str(out)]) == 0
+            runs.append(np.loadtxt(out / "estimates.csv", delimiter=",", skiprows=1, usecols=range(7)))
+            summary_k = json.loads((out / "replay_summary.json").read_text())
+            assert summary_k["estimator_errors"] == 0 and summary_k["bad"] == {}, summary_k
+        np.testing.assert_array_equal(runs[0], runs[1])
+        assert len(runs[0]) == len(rows) - 1, (len(runs[0]), len(rows) - 1)
 
 
 class PtyBridge:

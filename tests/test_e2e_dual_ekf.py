@@ -51,6 +51,7 @@ class Flight:
         comp_cmd = [sys.executable, "-m", "companion", "run", "--config", str(CONFIG)]
         for k, v in overrides.items():
             comp_cmd += ["--set", f"{k}={json.dumps(v)}"]
+        self.sets = [f"{k}={json.dumps(v)}" for k, v in overrides.items()] + list(sets)
         for item in sets:
             comp_cmd += ["--set", item]
         self.sim = subprocess.Popen(
@@ -163,9 +164,10 @@ def test_single_camera_mode_does_not_wait_for_the_other_camera(tmp_path: Path, m
 def test_a_recorded_flight_replays_to_the_estimates_the_daemon_made(tmp_path: Path) -> None:
     """daemon.record_inputs on a live flight, then ``companion replay`` of that recording: the same frames and
     autopilot samples through the same estimator give the estimates the daemon made in flight."""
+    from companion.cli import apply_overrides
     from companion.config import load_config
     from companion.factory import build_estimator
-    from companion.replay import replay_bag
+    from companion.replay import config_from_bag, replay_bag
 
     duration_s = 12.0
     bag, elog = tmp_path / "inputs", tmp_path / "estimates"
@@ -183,7 +185,10 @@ def test_a_recorded_flight_replays_to_the_estimates_the_daemon_made(tmp_path: Pa
     assert rec["messages"]["visible"] >= 0.6 * summary["frames_published"], rec
     assert rec["messages"]["imu"] >= 30 * duration_s and rec["messages"]["range"] >= 10 * duration_s, rec
     assert (bag / "metadata.yaml").exists(), "the daemon's clean stop closes the bag"
-    cfg = load_config(CONFIG)
+    # the record holds the daemon's configuration, its command-line overrides included
+    cfg = config_from_bag(bag)
+    assert cfg is not None and cfg.daemon.record_inputs == str(bag)
+    assert cfg.model_dump() == apply_overrides(load_config(CONFIG), flight.sets, "test").model_dump()
     s = replay_bag(bag, cfg, build_estimator(cfg), tmp_path / "replay")
     assert s.bad == {} and s.estimator_errors == 0 and s.topics["attitude"] == "/companion/attitude"
     live = np.loadtxt(f"{elog}.csv", delimiter=",", skiprows=1, usecols=(0, 1, 2, 3), ndmin=2)

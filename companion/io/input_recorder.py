@@ -16,7 +16,9 @@ busy) are not in the record:
 - ``/companion/attitude``: ``geometry_msgs/msg/QuaternionStamped``, the FRD body in NED (``map_ned``);
 - ``/companion/range``: ``sensor_msgs/msg/Range`` (NaN, no return, as +inf);
 - ``/companion/local_position``: ``nav_msgs/msg/Odometry`` with the twist in the world frame
-  (``child_frame_id`` = ``map_ned``; the autopilot's LOCAL_POSITION_NED has no attitude).
+  (``child_frame_id`` = ``map_ned``; the autopilot's LOCAL_POSITION_NED has no attitude);
+- ``/companion/config``: ``std_msgs/msg/String``, once at the start: the daemon's whole configuration as
+  JSON (overrides included), which ``companion replay`` uses when given no ``--config``.
 
 The daemon's threads only enqueue (a bounded queue: when the disk falls behind, samples are dropped and
 counted, never waited for); one writer thread encodes and writes. A write that fails is counted and logged
@@ -48,6 +50,7 @@ IMU_TOPIC = "/companion/imu"
 ATTITUDE_TOPIC = "/companion/attitude"
 RANGE_TOPIC = "/companion/range"
 LOCAL_POSITION_TOPIC = "/companion/local_position"
+CONFIG_TOPIC = "/companion/config"
 
 Item = Frame | ImuSample | AttitudeSample | AltimeterSample | LocalPositionSample
 
@@ -61,10 +64,13 @@ class InputRecorder:
     """Records frames and samples into a new bag at ``inputs_path(template)``. Raises OSError at construction
     when it cannot be created (an existing path, a read-only disk): at start, not in flight.
 
-    camera_topics: camera name -> ROS topic of its frames.
+    camera_topics: camera name -> ROS topic of its frames. config_json: the daemon's configuration, written
+    once on ``CONFIG_TOPIC`` ("" = not written).
     """
 
-    def __init__(self, template: str, camera_topics: dict[str, str], queue_size: int = 2048) -> None:
+    def __init__(
+        self, template: str, camera_topics: dict[str, str], queue_size: int = 2048, config_json: str = ""
+    ) -> None:
         self.path = inputs_path(template)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         try:
@@ -86,6 +92,9 @@ class InputRecorder:
             ("local_position", LOCAL_POSITION_TOPIC, ros_msgs.ODOMETRY_MSGTYPE),
         ):
             self._conns[key] = self._writer.add_connection(topic, msgtype, typestore=ts)
+        if config_json:
+            conn = self._writer.add_connection(CONFIG_TOPIC, ros_msgs.STRING_MSGTYPE, typestore=ts)
+            self._writer.write(conn, time.time_ns(), ros_msgs.string_cdr(config_json))
         self._queue: queue.Queue[tuple[Item, int] | None] = queue.Queue(maxsize=queue_size)
         self._lock = threading.Lock()
         self.messages: dict[str, int] = {}

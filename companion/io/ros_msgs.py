@@ -31,6 +31,7 @@ RANGE_MSGTYPE: Final = "sensor_msgs/msg/Range"
 ODOMETRY_MSGTYPE: Final = "nav_msgs/msg/Odometry"
 POSE_MSGTYPE: Final = "geometry_msgs/msg/PoseStamped"
 QUATERNION_MSGTYPE: Final = "geometry_msgs/msg/QuaternionStamped"
+STRING_MSGTYPE: Final = "std_msgs/msg/String"
 
 TYPESTORE: Final = get_typestore(Stores.ROS2_HUMBLE)
 ROSBAG_VERSION: Final = 8
@@ -281,6 +282,11 @@ def quaternion_cdr(t_us: int, R_ned_frd: np.ndarray) -> bytes:
     """A CDR ``geometry_msgs/msg/QuaternionStamped``: the FRD body in NED (``map_ned``)."""
     msg = _T[QUATERNION_MSGTYPE](header=_header(t_us, "map_ned"), quaternion=_q(ros_quat(R_ned_frd, True)))
     return bytes(TYPESTORE.serialize_cdr(msg, QUATERNION_MSGTYPE))
+
+
+def string_cdr(text: str) -> bytes:
+    """A CDR ``std_msgs/msg/String``."""
+    return bytes(TYPESTORE.serialize_cdr(_T[STRING_MSGTYPE](data=text), STRING_MSGTYPE))
 
 
 def pose_cdr(t_us: int, p_ned: np.ndarray, R_ned_frd: np.ndarray, ned_frd: bool) -> bytes:
