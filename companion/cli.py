@@ -265,6 +265,7 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     from companion.io.autopilot import AutopilotLinkAdapter
     from companion.io.frames import StampGate
     from companion.io.zenoh_io import CameraTopic, FrameSubscriber, StatusPublisher, open_session
+    from companion.undistort import frame_undistorter
 
     stop = stop or threading.Event()
     configure_opencv(cfg.daemon.opencv_threads)
@@ -329,6 +330,7 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
         frame_counters=frame_counters,
         estimate_log=estimate_log,
         input_recorder=recorder,
+        prepare=frame_undistorter({c: cfg.cameras[c].undistorter() for c in estimator.cameras}),
     )
 
     def on_signal(signum: int, _frame: object) -> None:

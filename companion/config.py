@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -17,6 +17,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from companion.constants import R_BODY_CAM_NADIR
 from companion.ekf.options import EkfOptions
 from companion.geometry import CameraIntrinsics, rot_from_rpy
+
+if TYPE_CHECKING:
+    from companion.undistort import Undistorter
 
 
 class ConfigError(ValueError):
@@ -58,13 +61,17 @@ class CameraConfig(_Strict):
     # where the camera sits, body FRD metres. The estimates are this camera's position; the autopilot moves
     # them to its body origin with VISO_POS_* / EKF2_EV_POS_*, which must say the same (the daemon checks)
     position_in_body_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    # a calibrated camera: its pinhole matrix in pixels (ROS camera_info's P for the rectified image), all four
-    # or none; they replace focal_mm / sensor_mm (square pixels, centred). The frames must be undistorted
-    # (rectified) before they are published: the estimators have no lens distortion model
+    # a calibrated camera: its pinhole matrix in pixels, all four or none; they replace focal_mm / sensor_mm
+    # (square pixels, centred). Frames published rectified: camera_info's P. Frames published raw: camera_info's
+    # K, with its lens distortion below
     fx_px: Annotated[float, Field(gt=0)] | None = None
     fy_px: Annotated[float, Field(gt=0)] | None = None
     cx_px: float | None = None
     cy_px: float | None = None
+    # the lens distortion of raw frames, OpenCV / ROS plumb_bob order: k1, k2, p1, p2[, k3[, k4, k5, k6]]
+    # (camera_info's D); the companion undistorts each frame before the estimator (companion.undistort), to
+    # the pinhole matrix that keeps every pixel valid. Needs fx_px..cy_px (K). [] = frames already pinhole
+    distortion: Annotated[list[float], Field(max_length=8)] = []
 
     @model_validator(mode="after")
     def _pinhole(self) -> CameraConfig:
@@ -75,13 +82,39 @@ class CameraConfig(_Strict):
             raise ValueError(
                 f"the principal point ({self.cx_px}, {self.cy_px}) is outside the {self.width}x{self.height} image"
             )
+        if self.distortion:
+            if len(self.distortion) not in (4, 5, 8):
+                raise ValueError(
+                    f"distortion has {len(self.distortion)} coefficients: 4, 5 or 8 (OpenCV's order)"
+                )
+            if not all(given):
+                raise ValueError(
+                    "distortion needs the calibrated matrix it goes with: fx_px, fy_px, cx_px, cy_px"
+                )
         return self
 
-    def intrinsics(self) -> CameraIntrinsics:
+    def raw_intrinsics(self) -> CameraIntrinsics:
+        """The pinhole matrix of the frames as published (K of a raw, distorted camera)."""
         if self.fx_px is not None:
             assert self.fy_px is not None and self.cx_px is not None and self.cy_px is not None
             return CameraIntrinsics(self.width, self.height, self.fx_px, self.fy_px, self.cx_px, self.cy_px)
         return CameraIntrinsics.from_focal_sensor(self.width, self.height, self.focal_mm, self.sensor_mm)
+
+    def intrinsics(self) -> CameraIntrinsics:
+        """The pinhole matrix of the frames the estimator gets (undistorted when ``distortion`` is given)."""
+        if self.distortion:
+            from companion.undistort import rectified_intrinsics
+
+            return rectified_intrinsics(self.raw_intrinsics(), np.asarray(self.distortion, float))
+        return self.raw_intrinsics()
+
+    def undistorter(self) -> Undistorter | None:
+        """The map from raw to undistorted frames, or None when the frames are pinhole already."""
+        if not self.distortion:
+            return None
+        from companion.undistort import Undistorter
+
+        return Undistorter.build(self.raw_intrinsics(), np.asarray(self.distortion, float))
 
     def R_body_cam(self) -> np.ndarray:
         """Nadir mount, then an optional small mounting rotation (roll, pitch, yaw in the body frame)."""

@@ -161,6 +161,7 @@ class Daemon:
         inbox_size: int = 4096,
         estimate_log: EstimateSink | None = None,
         input_recorder: InputSink | None = None,
+        prepare: Callable[[dict[str, Frame]], dict[str, Frame]] | None = None,
     ) -> None:
         self.estimator = estimator
         self.handoff = handoff
@@ -183,6 +184,8 @@ class Daemon:
         self.last_estimate: PoseEstimate | None = None
         self.estimate_log = estimate_log
         self.input_recorder = input_recorder
+        self.prepare = prepare
+        """Applied to each frame set before the estimator (lens undistortion, ``companion.undistort``)."""
 
     # -- inputs from the link thread -----------------------------------------------------------------
     def _enqueue(self, sample: Sample) -> None:
@@ -259,6 +262,13 @@ class Daemon:
 
     def process(self, frames: dict[str, Frame]) -> PoseEstimate | None:
         """Run the estimator on one frame set, send the result, record it in the estimates log. Never raises."""
+        if self.prepare is not None:
+            try:
+                frames = self.prepare(frames)
+            except ValueError as exc:  # a frame of another size than its camera's calibration: count, go on
+                self.counters.count_not_sent("bad_frame_size")
+                log.warning("frame set skipped: %s", exc)
+                return None
         try:
             est = self.estimator.on_frames(frames)
         except Exception:  # noqa: BLE001 - bad input must not kill the daemon: count, log, go on

@@ -39,6 +39,7 @@ from companion.io import ros_msgs
 from companion.io.frames import COMPRESSED_MSGTYPE, IMAGE_MSGTYPE, FrameError, decode_frame
 from companion.metrics import covariance_consistency, error_stats
 from companion.types import AltimeterSample, AttitudeSample, Estimator, Frame, ImuSample, LocalPositionSample
+from companion.undistort import frame_undistorter
 
 log = logging.getLogger(__name__)
 
@@ -278,6 +279,7 @@ def replay_bag(
     cams = tuple(estimator.cameras)
     tol_us = int(cfg.estimator.ekf.pair_tolerance_ms * 1000)
     handoff = FrameHandoff(cams, pair_tolerance_us=tol_us)
+    prepare = frame_undistorter({c: cfg.cameras[c].undistorter() for c in cams})  # as the daemon does
     with Reader(Path(bag)) as reader:
         types = {c.topic: c.msgtype for c in reader.connections}
         topics = choose_topics(types, cfg, cams, overrides)
@@ -336,6 +338,13 @@ def replay_bag(
                     _feed(estimator, sample)
                 summary.frame_sets += 1
                 t_first = stamp if t_first is None else t_first
+                if prepare is not None:
+                    try:
+                        fs = prepare(fs)
+                    except ValueError as exc:  # a frame of another size than its calibration, as the daemon
+                        _count(summary.not_sent, "bad_frame_size")
+                        log.warning("frame set skipped: %s", exc)
+                        continue
                 t0 = time.perf_counter()
                 try:
                     est = estimator.on_frames(fs)

@@ -27,10 +27,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from companion.geometry import rot_from_rpy, rpy_from_rot
+from companion.constants import R_BODY_CAM_NADIR
+from companion.geometry import CameraIntrinsics, camera_pose, rot_from_rpy, rpy_from_rot
 from companion.io import ros_msgs
 from companion.io.frames import IMAGE_MSGTYPE, encode_image
 
@@ -58,6 +60,32 @@ class FlightBagOptions:
     range_topic: str = "/uav/range"
     odometry_topic: str = "/uav/odometry"
     truth_topic: str = "/ground_truth/pose"
+    distortion: tuple[float, ...] = ()
+    """A lens: both cameras' images distorted with these OpenCV coefficients (k1, k2, p1, p2[, k3]) about the
+    cameras' pinhole matrix, which becomes their K; () = pinhole images."""
+
+
+class DistortingLens:
+    """Makes a camera's raw, distorted image from a pinhole rendering: each raw pixel is undistorted with
+    OpenCV's model (``cv2.undistortPoints``) and sampled in a pinhole image rendered wide enough (same focal
+    length, a margin on every side) that every raw pixel sees the scene."""
+
+    def __init__(self, K: CameraIntrinsics, distortion: tuple[float, ...]) -> None:
+        d = np.asarray(distortion, float)
+        Km = np.array([[K.fx, 0.0, K.cx], [0.0, K.fy, K.cy], [0.0, 0.0, 1.0]])
+        u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
+        uv = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
+        x = cv2.undistortPoints(uv, Km, d).reshape(K.height, K.width, 2)  # normalised pinhole coordinates
+        px, py = K.fx * x[..., 0] + K.cx, K.fy * x[..., 1] + K.cy
+        m = (
+            int(np.ceil(max(-px.min(), -py.min(), px.max() - (K.width - 1), py.max() - (K.height - 1), 0.0)))
+            + 2
+        )
+        self.wide = CameraIntrinsics(K.width + 2 * m, K.height + 2 * m, K.fx, K.fy, K.cx + m, K.cy + m)
+        self.map_x, self.map_y = (px + m).astype(np.float32), (py + m).astype(np.float32)
+
+    def apply(self, wide_image: np.ndarray) -> np.ndarray:
+        return cv2.remap(wide_image, self.map_x, self.map_y, cv2.INTER_LINEAR)
 
 
 def _times_us(t0_s: float, t1_s: float, hz: float) -> np.ndarray:
@@ -85,6 +113,12 @@ def write_flight_bag(
         raise ValueError("camera and IMU rates and the duration must be > 0")
     flight = EuropaFlight(o.seed, o.trajectory)
     traj = flight.traj
+    lens = wide = None
+    if o.distortion:
+        from sim_bridge.europa.render import EuropaCameras
+
+        lens = DistortingLens(flight.cameras.intrinsics, o.distortion)
+        wide = EuropaCameras(flight.world, lens.wide)
     t0, t1 = traj.t0_s, min(traj.t1_s, traj.t0_s + o.duration_s)
     rng = np.random.default_rng([o.seed, int(o.trajectory), 0xBA6])
     noise = europa_telemetry_noise(o.imu_hz)
@@ -135,7 +169,13 @@ def write_flight_bag(
             stamp = START_US + t_us
             s = traj.state_at(t_us * 1e-6)
             if kind == 0:
-                visible, thermal = flight.render(s, seed=o.seed * 1_000_003 + i)
+                if lens is None or wide is None:
+                    visible, thermal = flight.render(s, seed=o.seed * 1_000_003 + i)
+                else:
+                    R_wc, p_c = camera_pose(s.R_world_body, s.p_world, R_BODY_CAM_NADIR)
+                    visible, thermal = (
+                        lens.apply(im) for im in wide.render(R_wc, p_c, seed=o.seed * 1_000_003 + i)
+                    )
                 put(
                     "visible",
                     t_us,
@@ -194,6 +234,8 @@ def write_flight_bag(
         "first_stamp_s": START_US * 1e-6,
         "altimeter_offset_sigma_m": alt_noise.bias_sigma_m,
         "yaw_bias_deg": round(math.degrees(yaw_bias), 3),
+        "camera_K": asdict(flight.cameras.intrinsics),
+        "distortion": list(o.distortion),
     }
 
 
@@ -221,6 +263,11 @@ def add_flight_bag_parser(sub: Any) -> None:
         help="ned: map_ned / base_link_frd (default); enu: ROS's map / base_link (ENU, FLU)",
     )
     p.add_argument("--storage", default=d.storage, choices=["mcap", "sqlite3"])
+    p.add_argument(
+        "--distortion",
+        default="",
+        help="a lens: k1,k2,p1,p2[,k3] (OpenCV's order) applied to both cameras' images (default: pinhole)",
+    )
     p.set_defaults(func=cmd_flight_bag)
 
 
@@ -238,6 +285,7 @@ def cmd_flight_bag(a: Any) -> int:
         imu_hz=a.imu_rate,
         ned_frd=a.ros_frames == "ned",
         storage=a.storage,
+        distortion=tuple(float(x) for x in a.distortion.split(",")) if a.distortion else (),
     )
 
     def progress(done: int, total: int) -> None:
@@ -256,6 +304,12 @@ def cmd_flight_bag(a: Any) -> int:
     for topic, n in s["messages"].items():
         print(f"  {topic:24s} {n:6d} messages")
     print(f"  {s['trajectory']}: {s['distance_m']:.1f} m in {s['duration_s']:.1f} s")
+    if opts.distortion:
+        k = s["camera_K"]
+        print(
+            f"  the cameras' calibration, for [cameras.visible] and [cameras.thermal]: fx_px = {k['fx']:.3f}, "
+            f"fy_px = {k['fy']:.3f}, cx_px = {k['cx']:.2f}, cy_px = {k['cy']:.2f}, distortion = {list(opts.distortion)}"
+        )
     print(f"  replay it: companion replay {a.out} --config configs/europa_dual_ekf.toml")
     print(json.dumps({"flight_bag": s}), flush=True)
     return 0

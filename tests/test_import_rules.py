@@ -13,7 +13,12 @@ MATH_FILES = [
     p
     for pkg in ("georef", "vo", "lba", "ekf", "estimators")
     for p in sorted((ROOT / "companion" / pkg).rglob("*.py"))
-] + [ROOT / "companion/geometry.py", ROOT / "companion/types.py", ROOT / "companion/metrics.py"]
+] + [
+    ROOT / "companion/geometry.py",
+    ROOT / "companion/types.py",
+    ROOT / "companion/metrics.py",
+    ROOT / "companion/undistort.py",
+]
 FORBIDDEN_IN_MATH = (
     "zenoh",
     "pymavlink",
