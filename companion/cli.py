@@ -456,12 +456,15 @@ def cmd_replay(cfg: CompanionConfig, a: Any) -> int:
             "ready: --rate 1 replays at the flight's pace with it"
         )
     try:
-        summary = replay_bag(a.bag, cfg, estimator, a.out, overrides, progress, a.order, a.rate)
+        summary = replay_bag(a.bag, cfg, estimator, a.out, overrides, progress, a.order, a.rate, a.truth_tum)
     except (ReplayError, ValueError) as e:
         print(f"companion: {e}", file=sys.stderr)
         return 2
     except (ReaderError, FileNotFoundError) as e:
-        print(f"companion: cannot read the bag {a.bag}: {e}", file=sys.stderr)
+        print(
+            f"companion: cannot read {e.filename if isinstance(e, FileNotFoundError) else a.bag}: {e}",
+            file=sys.stderr,
+        )
         return 2
     _print_replay(summary)
     with open(f"{a.out}/replay_summary.json", "w") as f:
@@ -543,6 +546,11 @@ def main(argv: list[str] | None = None) -> int:
         default=0.0,
         help="0: as fast as it goes (default); 1: at the recorded pace (terrain_lba's back-end then has the "
         "time it had in flight); 2: twice as fast, ...",
+    )
+    pp.add_argument(
+        "--truth-tum",
+        default=None,
+        help="the truth as a TUM file (Unix s, NED) instead of a topic, e.g. the simulator's truth_clock.tum",
     )
     pp.add_argument("--json", action="store_true", help="print the whole summary as JSON at the end")
     a = ap.parse_args(argv)

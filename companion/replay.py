@@ -252,6 +252,7 @@ def replay_bag(
     progress: Callable[[ReplaySummary, float], None] | None = None,
     order: str = "arrival",
     rate: float = 0.0,
+    truth_tum: str | Path | None = None,
 ) -> ReplaySummary:
     """Run ``estimator`` over the flight in ``bag`` as fast as it goes. Writes ``out_dir/estimates.csv`` and
     ``.tum`` (and ``truth.tum`` with a truth topic). ``progress(summary, flight_s)`` after each frame set.
@@ -267,6 +268,9 @@ def replay_bag(
     adjustment in its worker process, applied when ready) uses at each frame what its back-end has finished:
     at ``rate=1`` the back-end has the time between frames it had in flight, as fast as possible less (its
     results come more frames late).
+
+    truth_tum: a TUM file of the truth (Unix seconds, NED, the body's quaternion x y z w) instead of the bag's
+    truth topic (``python -m sim_bridge sim`` writes ``truth_clock.tum``).
     Raises ReplayError (topics), rosbags' ReaderError / FileNotFoundError (the bag cannot be opened)."""
     from companion.io.estimate_log import EstimateLog
 
@@ -300,7 +304,12 @@ def replay_bag(
             for n in ("imu", "attitude", "range", "odometry", "truth")
             if (t := getattr(topics, n))
         }
+        if truth_tum is not None:
+            tele.pop("truth", None)
+            summary.topics["truth"] = f"file:{truth_tum}"
         samples, (t_truth, p_truth, q_truth) = _read_telemetry(reader, tele, summary)
+        if truth_tum is not None:
+            t_truth, p_truth, q_truth = read_tum(truth_tum)
         if not samples and not len(t_truth):
             log.warning("replay: no telemetry in %s: the estimator sees images only", bag)
         if order == "stamp":
@@ -398,6 +407,16 @@ def _feed(estimator: Estimator, s: Sample) -> None:
         estimator.on_attitude(s)
     else:
         estimator.on_local_position(s)
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A TUM trajectory (``t x y z qx qy qz qw`` per line, t in seconds) as (stamps us, positions, quaternions),
+    sorted by time. Raises ValueError on a file that is not one."""
+    a = np.loadtxt(path, ndmin=2)
+    if a.shape[1] != 8 or not len(a):
+        raise ValueError(f"{path}: not a TUM trajectory ({a.shape[1]} columns, {len(a)} lines)")
+    a = a[np.argsort(a[:, 0], kind="stable")]
+    return np.round(a[:, 0] * 1e6).astype(np.int64), a[:, 1:4], a[:, 4:8]
 
 
 def truth_at(t_truth: np.ndarray, p_truth: np.ndarray, t_us: np.ndarray) -> np.ndarray:

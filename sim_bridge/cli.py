@@ -153,7 +153,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
     signal.signal(signal.SIGUSR1, lambda *_: vehicle.autopilot.reboot())
     print(json.dumps({"ready": True, "distance_m": vehicle.distance_m()}), flush=True)
     res = vehicle.run()
-    summary = save_result(res, Path(cfg.out_dir), cfg, vehicle.traj)
+    summary = save_result(res, Path(cfg.out_dir), cfg, vehicle.traj, vehicle.t0_us)
     print(json.dumps({"done": summary}), flush=True)
     return 0
 

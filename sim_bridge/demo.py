@@ -305,7 +305,8 @@ def run_demo(a: argparse.Namespace) -> int:
     print(f"wrote {truth.name}, {est.name} (TUM), {png.name}, ape.json in {run_dir}")
     if a.record_inputs:
         print(
-            f"the companion's inputs are in {run_dir / 'inputs'}; replay them on the bench at the flight's pace:\n"
-            f"  .venv/bin/companion replay {run_dir / 'inputs'} --rate 1 --out {run_dir / 'replay'}"
+            f"the companion's inputs are in {run_dir / 'inputs'}; replay them (as fast as it goes; --rate 1 at "
+            f"the flight's pace):\n  .venv/bin/companion replay {run_dir / 'inputs'} --out {run_dir / 'replay'} "
+            f"--truth-tum {run_dir / 'truth_clock.tum'}"
         )
     return 0

@@ -358,12 +358,18 @@ def _cov_ne(urt21: Sequence[float]) -> np.ndarray:
     return urt21_to_covariance(urt21)[:2, :2]
 
 
-def save_result(res: SimResult, out_dir: Path, cfg: SimConfig, traj: Trajectory) -> dict[str, Any]:
-    """Write truth.tum, estimate.tum and sim_summary.json into ``out_dir``; return the summary."""
+def save_result(
+    res: SimResult, out_dir: Path, cfg: SimConfig, traj: Trajectory, t0_us: int | None = None
+) -> dict[str, Any]:
+    """Write truth.tum, estimate.tum and sim_summary.json into ``out_dir``; return the summary. With the
+    flight's start on the companion's clock (``t0_us``), also truth_clock.tum: the truth at the frames'
+    capture stamps (Unix s), for ``companion replay --truth-tum`` of a record of the flight."""
     out_dir.mkdir(parents=True, exist_ok=True)
     states = traj.states(res.truth_t_s)
     rpy_truth = np.array([rpy_from_rot(s.R_world_body) for s in states])
     write_tum(out_dir / "truth.tum", res.truth_t_s, res.truth_p, rpy_truth)
+    if t0_us is not None:
+        write_tum(out_dir / "truth_clock.tum", t0_us * 1e-6 + res.truth_t_s, res.truth_p, rpy_truth)
     write_tum(out_dir / "estimate.tum", res.est_t_s, res.est_p, res.est_rpy if len(res.est_rpy) else None)
     summary = {
         "config": asdict(cfg),

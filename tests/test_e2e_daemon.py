@@ -320,10 +320,13 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
         runs = []
         for k in range(2):
             out = tmp_path / f"replay{k}"
-            assert companion_main(["replay", str(tmp_path / "inputs"), "--out", str(out)]) == 0
+            truth = ["--truth-tum", str(tmp_path / "truth_clock.tum")]  # the simulator's truth on our clock
+            assert companion_main(["replay", str(tmp_path / "inputs"), "--out", str(out), *truth]) == 0
             runs.append(np.loadtxt(out / "estimates.csv", delimiter=",", skiprows=1, usecols=range(7)))
             summary_k = json.loads((out / "replay_summary.json").read_text())
             assert summary_k["estimator_errors"] == 0 and summary_k["bad"] == {}, summary_k
+            e = summary_k["error_m"]
+            assert e["count"] == summary_k["would_send"] and e["median"] < case.median_max_m, e
         np.testing.assert_array_equal(runs[0], runs[1])
         assert len(runs[0]) == len(rows) - 1, (len(runs[0]), len(rows) - 1)
 
