@@ -329,6 +329,8 @@ class DaemonConfig(_Strict):
     # (MCAP) directory for ``companion replay``; "{time}" in the path is the start time; "" = off
     # (``companion.io.input_recorder``; ~1.8 MB/s for the Europa camera pair at 2 Hz)
     record_inputs: str = ""
+    # the input record closes itself (readable) when the disk has less free space than this, MB
+    record_min_free_mb: Annotated[float, Field(ge=0)] = 500.0
     # threads OpenCV may use inside one call (cv2.setNumThreads), 0 = its default, one per core. One saves CPU
     # per frame for the rest of the companion (the terrain back-end, Zenoh, MAVLink) at the same latency with
     # georef and a few ms more with terrain_lba (``python -m bench latency --opencv-threads N``; docs/benchmarks.md)

@@ -47,6 +47,16 @@ def _params_note(check: dict[str, Any] | None) -> str:
     return f"  AUTOPILOT PARAMS {check['worst'].upper()}: {', '.join(sorted(check['problems']))}"
 
 
+def _record_note(rec: dict[str, Any] | None) -> str:
+    """Status-line suffix while the inputs are recorded: its size, and what went wrong with it."""
+    if not rec:
+        return ""
+    if rec.get("stopped"):
+        return f"  REC STOPPED ({rec['stopped']})"
+    lost = rec.get("dropped", 0) + rec.get("errors", 0)
+    return f"  rec {rec.get('mbytes', 0):.0f} MB" + (f" LOST {lost}" if lost else "")
+
+
 def _sigma_note(sigma_h_m: float | None) -> str:
     """The estimate's own horizontal 1-sigma (root of the trace of its north-east covariance), if any."""
     if sigma_h_m is None or not math.isfinite(sigma_h_m):
@@ -69,6 +79,7 @@ def format_status_line(st: dict[str, Any]) -> str:
         f"{'' if link.get('timesync', True) else ' (no timesync)'}"
         f"{_params_note(link.get('params_check'))}"
         f"{''.join(f'  {w}' for w in st.get('estimator', {}).get('warnings', {}).values())}"
+        f"{_record_note(st.get('inputs_record'))}"
     )
 
 

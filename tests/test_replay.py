@@ -6,6 +6,7 @@ and the simulated sensors; the replay runs the configured dual-camera EKF over t
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -292,3 +293,34 @@ def test_input_recorder_drops_and_counts_when_the_disk_falls_behind(tmp_path: Pa
     st = rec.status()
     assert 40 <= dropped <= 46 and st["dropped"] == dropped
     assert st["messages"]["range"] + dropped == 50 and st["errors"] == 0
+
+
+def test_input_recorder_closes_its_record_when_the_disk_runs_low(tmp_path: Path) -> None:
+    from companion.daemon import format_status_line
+    from companion.io.input_recorder import InputRecorder
+    from companion.types import AltimeterSample
+
+    # a threshold above any disk's free space: the first write finds the disk "full"
+    rec = InputRecorder(str(tmp_path / "rec"), {}, min_free_mb=1e12)
+    for i in range(20):
+        rec.put(AltimeterSample(i, 10.0), i)
+    for _ in range(200):
+        if rec.status()["stopped"]:
+            break
+        time.sleep(0.01)
+    st = rec.status()
+    assert st["stopped"].startswith("disk below") and st["messages"] == {} and st["errors"] == 0
+    # the record was closed properly: a reader opens it (its metadata written), nothing lost but what was not written
+    assert (tmp_path / "rec" / "metadata.yaml").exists()
+    with Reader(tmp_path / "rec") as r:
+        assert sum(c.msgcount for c in r.connections) == 0
+    rec.put(AltimeterSample(99, 10.0), 99)  # ignored from now on, never an error
+    rec.close()
+    status = {
+        "fps_in": 1.0, "fps_out": 1.0, "latency_p50_ms": 1.0, "latency_p99_ms": 1.0, "frames_dropped_stale": 0,
+        "frames": {}, "not_sent": {}, "quality": 1.0, "estimate_status": "ok", "link": {"state": "up"},
+        "inputs_record": rec.status(),
+    }  # fmt: skip
+    assert "REC STOPPED (disk below" in format_status_line(status)
+    status["inputs_record"] = {"mbytes": 107.4, "dropped": 0, "errors": 0, "stopped": ""}
+    assert format_status_line(status).endswith("  rec 107 MB")

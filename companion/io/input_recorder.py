@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import shutil
 import threading
 import time
 from pathlib import Path
@@ -65,11 +66,18 @@ class InputRecorder:
     when it cannot be created (an existing path, a read-only disk): at start, not in flight.
 
     camera_topics: camera name -> ROS topic of its frames. config_json: the daemon's configuration, written
-    once on ``CONFIG_TOPIC`` ("" = not written).
+    once on ``CONFIG_TOPIC`` ("" = not written). min_free_mb: when the disk has less free space than this, the
+    record is closed (readable, metadata written) and the rest of the flight is not recorded: a full card
+    must not take the companion's own files or the bag with it (``stopped`` says why).
     """
 
     def __init__(
-        self, template: str, camera_topics: dict[str, str], queue_size: int = 2048, config_json: str = ""
+        self,
+        template: str,
+        camera_topics: dict[str, str],
+        queue_size: int = 2048,
+        config_json: str = "",
+        min_free_mb: float = 500.0,
     ) -> None:
         self.path = inputs_path(template)
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -101,7 +109,11 @@ class InputRecorder:
         self.bytes = 0
         self.dropped = 0
         self.errors = 0
+        self.stopped = ""
+        self.min_free_bytes = int(min_free_mb * 1e6)
+        self._next_space_check = 0
         self._closed = False
+        self._writer_closed = False
         self._thread = threading.Thread(target=self._write_loop, name="input-recorder", daemon=True)
         self._thread.start()
 
@@ -109,7 +121,7 @@ class InputRecorder:
     def put(self, item: Item, log_us: int) -> None:
         """Enqueue a frame or a sample with its log time (us, companion clock); never blocks (a full queue
         drops it and counts it)."""
-        if isinstance(item, Frame) and item.camera not in self._conns:
+        if (isinstance(item, Frame) and item.camera not in self._conns) or self.stopped:
             return
         try:
             self._queue.put_nowait((item, int(log_us)))
@@ -125,6 +137,7 @@ class InputRecorder:
                 "mbytes": round(self.bytes / 1e6, 1),
                 "dropped": self.dropped,
                 "errors": self.errors,
+                "stopped": self.stopped,
             }
 
     def close(self) -> None:
@@ -134,10 +147,28 @@ class InputRecorder:
         self._closed = True
         self._queue.put(None)
         self._thread.join(timeout=30.0)
+        self._close_writer()
+
+    def _close_writer(self) -> None:
+        with self._lock:
+            if self._writer_closed:
+                return
+            self._writer_closed = True
         try:
             self._writer.close()
         except (WriterError, OSError) as exc:
             log.error("inputs record %s: cannot close: %s", self.path, exc)
+
+    def _disk_low(self) -> bool:
+        """Every ~16 MB written: is the disk below ``min_free_bytes``?"""
+        if self.bytes < self._next_space_check:
+            return False
+        self._next_space_check = self.bytes + 16_000_000
+        try:
+            free = shutil.disk_usage(self.path).free
+        except OSError:
+            return False
+        return free < self.min_free_bytes
 
     # -- the writer thread -------------------------------------------------------------------------------
     def _encode(self, item: Item) -> tuple[str, bytes]:
@@ -160,6 +191,18 @@ class InputRecorder:
             if got is None:
                 return
             item, log_us = got
+            if self.stopped:
+                continue
+            if self._disk_low():
+                with self._lock:
+                    self.stopped = f"disk below {self.min_free_bytes / 1e6:.0f} MB free"
+                log.error(
+                    "inputs record %s: %s: record closed, the flight goes on unrecorded",
+                    self.path,
+                    self.stopped,
+                )
+                self._close_writer()
+                continue
             try:
                 key, payload = self._encode(item)
                 self._writer.write(self._conns[key], log_us * 1000, payload)
