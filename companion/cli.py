@@ -30,6 +30,7 @@ import queue
 import signal
 import sys
 import threading
+import time
 import tomllib
 from typing import Any
 
@@ -427,6 +428,7 @@ def cmd_replay(cfg: CompanionConfig, a: Any) -> int:
     from companion.replay import ReplayError, replay_bag
 
     configure_opencv(cfg.daemon.opencv_threads)
+    a.out = a.out.replace("{time}", time.strftime("%Y%m%d-%H%M%S"))
     lba = cfg.estimator.terrain_lba
     fixed = cfg.estimator.kind == "terrain_lba" and a.rate <= 0 and lba.backend_apply == "when_ready"
     if fixed:  # as fast as it goes, "when ready" depends on the machine: use the adjustment at a fixed delay
@@ -514,7 +516,11 @@ def main(argv: list[str] | None = None) -> int:
         help="TOML configuration file (cameras, estimator); default: the one a daemon's record holds",
     )
     pp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one key")
-    pp.add_argument("--out", default="runs/replay", help="directory of the estimates log (%(default)s)")
+    pp.add_argument(
+        "--out",
+        default="runs/replay-{time}",
+        help="a new directory for the estimates log; {time} = now (default %(default)s)",
+    )
     pp.add_argument(
         "--camera-topic",
         action="append",

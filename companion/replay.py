@@ -271,7 +271,26 @@ def replay_bag(
 
     truth_tum: a TUM file of the truth (Unix seconds, NED, the body's quaternion x y z w) instead of the bag's
     truth topic (``python -m sim_bridge sim`` writes ``truth_clock.tum``).
-    Raises ReplayError (topics), rosbags' ReaderError / FileNotFoundError (the bag cannot be opened)."""
+
+    Raises ReplayError (topics, an output directory that holds a replay already), rosbags' ReaderError /
+    FileNotFoundError (the bag cannot be opened). Closes ``estimator`` in every case."""
+    try:
+        return _replay(bag, cfg, estimator, out_dir, overrides, progress, order, rate, truth_tum)
+    finally:
+        estimator.close()
+
+
+def _replay(
+    bag: str | Path,
+    cfg: CompanionConfig,
+    estimator: Estimator,
+    out_dir: str | Path,
+    overrides: dict[str, str] | None,
+    progress: Callable[[ReplaySummary, float], None] | None,
+    order: str,
+    rate: float,
+    truth_tum: str | Path | None,
+) -> ReplaySummary:
     from companion.io.estimate_log import EstimateLog
 
     if order not in ("arrival", "stamp"):
@@ -279,6 +298,8 @@ def replay_bag(
     if not rate >= 0:
         raise ValueError(f"rate must be >= 0, got {rate}")
     out = Path(out_dir)
+    if (out / "estimates.csv").exists():  # the estimates log appends: never mix two replays in one file
+        raise ReplayError(f"{out} holds a replay already (estimates.csv): choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     cams = tuple(estimator.cameras)
     tol_us = int(cfg.estimator.ekf.pair_tolerance_ms * 1000)
@@ -383,7 +404,6 @@ def replay_bag(
                     progress(summary, summary.flight_s)
         finally:
             elog.close()
-            estimator.close()
     summary.wall_s = time.perf_counter() - wall0
     summary.ms_per_frame_set = 1000.0 * spent / summary.frame_sets if summary.frame_sets else float("nan")
     summary.frames_unpaired = handoff.counters.dropped_unpaired
