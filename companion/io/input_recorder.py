@@ -145,7 +145,10 @@ class InputRecorder:
         if self._closed:
             return
         self._closed = True
-        self._queue.put(None)
+        try:  # a writer stuck on a stalled disk: give it 30 s, then close what was written
+            self._queue.put(None, timeout=30.0)
+        except queue.Full:
+            log.error("inputs record %s: the writer did not drain its queue in 30 s", self.path)
         self._thread.join(timeout=30.0)
         self._close_writer()
 
