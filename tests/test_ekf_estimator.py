@@ -281,3 +281,29 @@ def test_patch_search_finds_the_true_projection_on_rendered_frames(flight):
     assert n >= 40
     assert found >= 0.6 * n
     assert np.median(errors) < 0.35 and np.percentile(errors, 90) < 1.0
+
+
+def test_the_starts_yaw_uncertainty_is_carried_in_the_covariance_sent_not_in_the_filter(flight):
+    """EkfOptions.filter_yaw_sigma_rad: the filter starts with that yaw sigma, the rest of initial_yaw_sigma_rad
+    turns the map about the start in the covariance sent (lba.gauge: sigma x distance across the track)."""
+    from companion.lba.gauge import gauge_covariance
+
+    frames = [(t, dict(fs)) for t, fs in flight["frames"]]
+    inside = _estimator(flight, "thermal", initial_yaw_sigma_rad=0.02, filter_yaw_sigma_rad=0.02)
+    gauged = _estimator(flight, "thermal", initial_yaw_sigma_rad=0.02)  # the filter's share: 0.01 deg
+    tight = _estimator(flight, "thermal", initial_yaw_sigma_rad=1.7453292519943296e-4)
+    runs = {}
+    for name, est in (("inside", inside), ("gauged", gauged), ("tight", tight)):
+        runs[name] = run_sequence(est, flight["imu"], flight["alt"], frames)
+        est.close()
+    # the filter itself: the same with the yaw gauged out as with a tight prior, to the last bit
+    np.testing.assert_array_equal(runs["gauged"].p_world, runs["tight"].p_world)
+    # what is sent: the tight filter's covariance plus the turn about the start (0.02 rad)
+    p0 = flight["states"][0].p_world
+    k = -1
+    extra = gauge_covariance(runs["gauged"].p_world[k], p0, 0.0, np.sqrt(0.02**2 - 1.7453292519943296e-4**2))
+    np.testing.assert_allclose(runs["gauged"].covariance[k], runs["tight"].covariance[k] + extra, atol=1e-12)
+    moved = np.linalg.norm(runs["gauged"].p_world[k, :2] - p0[:2])
+    assert moved > 5.0 and runs["gauged"].covariance[k][5, 5] >= 0.02**2 - 1e-9
+    # with the whole prior inside the filter, the updates may move its yaw: different estimates
+    assert not np.array_equal(runs["inside"].p_world, runs["gauged"].p_world)

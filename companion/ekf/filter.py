@@ -108,9 +108,11 @@ class InverseDepthEkf:
             P[IDX_BA, IDX_BA] = np.eye(3) * o.accel_bias_sigma0**2
             P[IDX_BG, IDX_BG] = np.eye(3) * o.gyro_bias_sigma0**2
         # dtheta is in body axes; the prior is on world tilt and yaw: yaw is about world down = R^T e3
+        # (the filter's own share of the yaw prior: ``EkfOptions.filter_yaw_sigma_rad``)
         yaw_dir = rot_from_quat(self.q)[2, :]
+        yaw_sigma = min(o.initial_yaw_sigma_rad, o.filter_yaw_sigma_rad)
         P[IDX_TH, IDX_TH] = np.eye(3) * o.initial_tilt_sigma_rad**2 + np.outer(yaw_dir, yaw_dir) * (
-            o.initial_yaw_sigma_rad**2 - o.initial_tilt_sigma_rad**2
+            yaw_sigma**2 - o.initial_tilt_sigma_rad**2
         )
         if self.idx_bias is not None:
             P[self.idx_bias, self.idx_bias] = o.altimeter_bias_sigma_m**2

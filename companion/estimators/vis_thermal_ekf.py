@@ -14,6 +14,7 @@ process keeps its setting).
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
@@ -29,6 +30,7 @@ from companion.ekf.options import EkfOptions, cameras_for_mode
 from companion.ekf.slam import SlamPose, VisThermalSlam
 from companion.ekf.so3 import quat_from_rot
 from companion.geometry import CameraIntrinsics, rot_from_rpy
+from companion.lba.gauge import gauge_covariance
 from companion.types import (
     AltimeterSample,
     AttitudeSample,
@@ -113,6 +115,12 @@ class VisThermalEkfEstimator:
         self._local: LocalPositionSample | None = None
         self._pending: list[ImuSample | AltimeterSample] = []
         self._last_good: SlamPose | None = None
+        # the start's yaw uncertainty beyond the filter's own share (EkfOptions.filter_yaw_sigma_rad): the map
+        # is turned about the start by it, which the covariance sent carries (lba.gauge) and the filter does not
+        self._gauge_yaw_sigma = math.sqrt(
+            max(options.initial_yaw_sigma_rad**2 - options.filter_yaw_sigma_rad**2, 0.0)
+        )
+        self._gauge_pivot: np.ndarray | None = None
         self.reset_counter = 0
         self.counters = {
             "frames": 0,
@@ -291,6 +299,8 @@ class VisThermalEkfEstimator:
             )
         q = quat_from_rot(rot_from_rpy(*rpy))
         self.slam.start(stamp_us, p0, v0, q)
+        if self._gauge_pivot is None:  # a restart keeps the first start's turn: the yaw error since stays
+            self._gauge_pivot = np.asarray(p0, float).copy()
         return True
 
     def _reinit(self, stamp_us: int) -> None:
@@ -320,11 +330,14 @@ class VisThermalEkfEstimator:
         if status is EstimateStatus.OK:
             self._last_good = pose
         c = self.slam.counters
+        cov = pose.covariance
+        if self._gauge_yaw_sigma > 0 and self._gauge_pivot is not None:
+            cov = cov + gauge_covariance(pose.p_world, self._gauge_pivot, 0.0, self._gauge_yaw_sigma)
         return PoseEstimate(
             stamp_us=pose.stamp_us,
             p_body_in_world_m=pose.p_world,
             rpy_rad=pose.rpy_rad,
-            covariance=pose.covariance,
+            covariance=cov,
             reset_counter=self.reset_counter,
             quality=float(matched / max(tracked, 1)),
             status=status,
