@@ -32,6 +32,7 @@ import sys
 import threading
 import time
 import tomllib
+from pathlib import Path
 from typing import Any
 
 from companion.config import CompanionConfig, ConfigError, MavlinkConfig, load_config, parse_config
@@ -468,6 +469,12 @@ def cmd_replay(cfg: CompanionConfig, a: Any) -> int:
             f"companion: cannot read {e.filename if isinstance(e, FileNotFoundError) else a.bag}: {e}",
             file=sys.stderr,
         )
+        bag = Path(a.bag)
+        if bag.is_dir() and not (bag / "metadata.yaml").exists() and any(bag.glob("*.mcap")):
+            print(
+                f"  its recorder did not close it (power lost?): python -m sim_bridge recover {a.bag}",
+                file=sys.stderr,
+            )
         return 2
     _print_replay(summary)
     with open(f"{a.out}/replay_summary.json", "w") as f:

@@ -327,3 +327,17 @@ def test_input_recorder_closes_its_record_when_the_disk_runs_low(tmp_path: Path)
     assert "REC STOPPED (disk below" in format_status_line(status)
     status["inputs_record"] = {"mbytes": 107.4, "dropped": 0, "errors": 0, "stopped": ""}
     assert format_status_line(status).endswith("  rec 107 MB")
+
+
+def test_a_record_whose_daemon_was_killed_is_named_with_the_way_to_recover_it(
+    flight: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import shutil
+
+    killed = tmp_path / "inputs"
+    killed.mkdir()
+    for f in flight.glob("*.mcap"):  # the data without the metadata a clean stop writes
+        shutil.copy(f, killed / f.name)
+    rc = companion_main(["replay", str(killed), "--config", str(CONFIG), "--out", str(tmp_path / "out")])
+    assert rc == 2
+    assert f"python -m sim_bridge recover {killed}" in capsys.readouterr().err
