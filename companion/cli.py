@@ -426,14 +426,12 @@ def cmd_replay(cfg: CompanionConfig, a: Any) -> int:
     from rosbags.rosbag2 import ReaderError
 
     from companion.factory import build_estimator
-    from companion.replay import ReplayError, replay_bag
+    from companion.replay import ReplayError, replay_bag, replay_config
 
     configure_opencv(cfg.daemon.opencv_threads)
     a.out = a.out.replace("{time}", time.strftime("%Y%m%d-%H%M%S"))
+    cfg, fixed = replay_config(cfg, a.rate)
     lba = cfg.estimator.terrain_lba
-    fixed = cfg.estimator.kind == "terrain_lba" and a.rate <= 0 and lba.backend_apply == "when_ready"
-    if fixed:  # as fast as it goes, "when ready" depends on the machine: use the adjustment at a fixed delay
-        cfg = apply_overrides(cfg, ['estimator.terrain_lba.backend_apply="fixed_delay"'], "companion replay")
     try:
         overrides = replay_overrides(a)
         estimator = build_estimator(cfg)

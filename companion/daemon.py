@@ -83,6 +83,27 @@ def format_status_line(st: dict[str, Any]) -> str:
     )
 
 
+def feed_sample(estimator: Estimator, s: Sample) -> None:
+    """Hand one autopilot sample to the estimator's method for its kind (the daemon's inbox, the replay)."""
+    if isinstance(s, AttitudeSample):
+        estimator.on_attitude(s)
+    elif isinstance(s, ImuSample):
+        estimator.on_imu(s)
+    elif isinstance(s, AltimeterSample):
+        estimator.on_altimeter(s)
+    else:
+        estimator.on_local_position(s)
+
+
+def estimator_report(estimator: Estimator) -> dict[str, Any]:
+    """The estimator's counters, no-fix reasons and warnings, those it has (status topic, replay summary)."""
+    return {
+        k: dict(v)
+        for k in ("counters", "no_fix_reasons", "warnings")
+        if isinstance(v := getattr(estimator, k, None), dict)
+    }
+
+
 def now_us() -> int:
     """The companion clock: Unix time in microseconds, the clock ROS 2 header stamps use."""
     return time.time_ns() // 1000
@@ -218,14 +239,7 @@ class Daemon:
             self._inbox.clear()
             drained_us = now_us()
         for s in sorted(items, key=lambda s: s.stamp_us):
-            if isinstance(s, AttitudeSample):
-                self.estimator.on_attitude(s)
-            elif isinstance(s, ImuSample):
-                self.estimator.on_imu(s)
-            elif isinstance(s, AltimeterSample):
-                self.estimator.on_altimeter(s)
-            else:
-                self.estimator.on_local_position(s)
+            feed_sample(self.estimator, s)
         return drained_us
 
     # -- lifecycle ----------------------------------------------------------------------------------
@@ -354,11 +368,7 @@ class Daemon:
             "link": self.link.status(),
             "estimates_log": None if self.estimate_log is None else self.estimate_log.status(),
             "inputs_record": None if self.input_recorder is None else self.input_recorder.status(),
-            "estimator": {
-                k: dict(v)
-                for k in ("counters", "no_fix_reasons", "warnings")
-                if isinstance(v := getattr(self.estimator, k, None), dict)
-            },
+            "estimator": estimator_report(self.estimator),
         }
 
     def status_line(self, st: dict[str, Any] | None = None) -> str:

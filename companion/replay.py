@@ -34,6 +34,7 @@ from rosbags.rosbag2 import Reader
 from scipy.spatial.transform import Rotation
 
 from companion.config import CompanionConfig
+from companion.daemon import estimator_report, feed_sample
 from companion.handoff import FrameHandoff
 from companion.io import ros_msgs
 from companion.io.frames import COMPRESSED_MSGTYPE, IMAGE_MSGTYPE, FrameError, decode_frame
@@ -63,6 +64,17 @@ class ReplayTopics:
     range: str | None = None
     odometry: str | None = None
     truth: str | None = None
+
+
+def replay_config(cfg: CompanionConfig, rate: float) -> tuple[CompanionConfig, bool]:
+    """The configuration a replay runs with, and whether it changed it: at full speed (``rate`` 0) the
+    terrain estimator's adjustment is used a fixed number of frames after its key frame instead of when ready
+    (``backend_apply``), so the estimates do not depend on the machine's load and two replays agree."""
+    t = cfg.estimator.terrain_lba
+    if cfg.estimator.kind != "terrain_lba" or rate > 0 or t.backend_apply != "when_ready":
+        return cfg, False
+    t = t.model_copy(update={"backend_apply": "fixed_delay"})
+    return cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"terrain_lba": t})}), True
 
 
 def config_from_bag(bag: str | Path, source: str = "") -> CompanionConfig | None:
@@ -365,7 +377,7 @@ def _replay(
                     if wait_s > 0:
                         time.sleep(wait_s)
                 for sample in sorted(batch, key=lambda x: x.stamp_us):  # stable, as the daemon's inbox
-                    _feed(estimator, sample)
+                    feed_sample(estimator, sample)
                 summary.frame_sets += 1
                 t_first = stamp if t_first is None else t_first
                 if prepare is not None:
@@ -407,26 +419,11 @@ def _replay(
     summary.wall_s = time.perf_counter() - wall0
     summary.ms_per_frame_set = 1000.0 * spent / summary.frame_sets if summary.frame_sets else float("nan")
     summary.frames_unpaired = handoff.counters.dropped_unpaired
-    summary.estimator = {
-        k: dict(v)
-        for k in ("counters", "no_fix_reasons", "warnings")
-        if isinstance(v := getattr(estimator, k, None), dict)
-    }
+    summary.estimator = estimator_report(estimator)
     summary.estimates_csv, summary.estimates_tum = str(elog.csv_path), str(elog.tum_path)
     if len(t_truth) >= 2:
         _compare(summary, rows, t_truth, p_truth, q_truth, out)
     return summary
-
-
-def _feed(estimator: Estimator, s: Sample) -> None:
-    if isinstance(s, ImuSample):
-        estimator.on_imu(s)
-    elif isinstance(s, AltimeterSample):
-        estimator.on_altimeter(s)
-    elif isinstance(s, AttitudeSample):
-        estimator.on_attitude(s)
-    else:
-        estimator.on_local_position(s)
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
