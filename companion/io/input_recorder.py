@@ -197,14 +197,12 @@ class InputRecorder:
             if self.stopped:
                 continue
             if self._disk_low():
-                with self._lock:
-                    self.stopped = f"disk below {self.min_free_bytes / 1e6:.0f} MB free"
-                log.error(
-                    "inputs record %s: %s: record closed, the flight goes on unrecorded",
-                    self.path,
-                    self.stopped,
-                )
+                # closed first, then said: whoever sees ``stopped`` finds the bag readable
                 self._close_writer()
+                why = f"disk below {self.min_free_bytes / 1e6:.0f} MB free"
+                with self._lock:
+                    self.stopped = why
+                log.error("inputs record %s: %s: record closed, the flight goes on unrecorded", self.path, why)
                 continue
             try:
                 key, payload = self._encode(item)
