@@ -290,6 +290,7 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
             {c: "/" + cfg.cameras[c].key.lstrip("/") for c in estimator.cameras},
             config_json=cfg.model_dump_json(),
             min_free_mb=cfg.daemon.record_min_free_mb,
+            frames=cfg.daemon.record_frames,
         )
         log.info("recording the estimator's inputs in %s (companion replay reads it)", recorder.path)
 

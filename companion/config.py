@@ -327,8 +327,11 @@ class DaemonConfig(_Strict):
     estimates_log: str = ""
     # record what the estimator is given (camera frames, IMU, attitude, range, local position) as a rosbag2
     # (MCAP) directory for ``companion replay``; "{time}" in the path is the start time; "" = off
-    # (``companion.io.input_recorder``; ~1.8 MB/s for the Europa camera pair at 2 Hz)
+    # (``companion.io.input_recorder``; with PNG frames ~1.2 MB/s for the Europa camera pair at 2 Hz)
     record_inputs: str = ""
+    # the recorded camera frames: "png" (lossless, 2/3 of the bytes for 6 ms of the writer thread's CPU per
+    # 480 x 480 8-bit frame, 13 ms per 640 x 480) or "raw" (sensor_msgs/Image, no encoding; bench "recorder")
+    record_frames: Literal["png", "raw"] = "png"
     # the input record closes itself (readable) when the disk has less free space than this, MB
     record_min_free_mb: Annotated[float, Field(ge=0)] = 500.0
     # threads OpenCV may use inside one call (cv2.setNumThreads), 0 = its default, one per core. One saves CPU

@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     pd.add_argument(
         "--record-inputs",
         action="store_true",
-        help="the companion records what its estimator is given (RUN/inputs, ~3.4 MB/s) for companion replay",
+        help="the companion records what its estimator is given (RUN/inputs, ~2.3 MB/s) for companion replay",
     )
     from sim_bridge.flight_bag import add_flight_bag_parser
     from sim_bridge.recording import add_record_parser, add_recover_parser, add_replay_parser

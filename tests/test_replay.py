@@ -222,12 +222,14 @@ def test_replay_command_prints_the_error_and_writes_its_summary(
 # -- the daemon's record of its inputs ----------------------------------------------------------------------
 
 
-def test_input_recorder_writes_what_the_replay_reads_back(tmp_path: Path) -> None:
+@pytest.mark.parametrize("frames", ["png", "raw"])
+def test_input_recorder_writes_what_the_replay_reads_back(tmp_path: Path, frames: str) -> None:
+    from companion.io.frames import decode_frame
     from companion.io.input_recorder import InputRecorder
     from companion.replay import _decode_sample
     from companion.types import AltimeterSample, AttitudeSample, Frame, ImuSample, LocalPositionSample
 
-    rec = InputRecorder(str(tmp_path / "rec-{time}"), {"visible": "/uav/camera/visible"})
+    rec = InputRecorder(str(tmp_path / "rec-{time}"), {"visible": "/uav/camera/visible"}, frames=frames)
     img = (np.arange(480 * 640) % 251).astype(np.uint8).reshape(480, 640)
     items: list[tuple[Any, int]] = [
         (ImuSample(1_000, np.array([0.1, -0.2, -1.3]), np.array([0.01, 0.02, -0.03])), 1_500),
@@ -252,10 +254,10 @@ def test_input_recorder_writes_what_the_replay_reads_back(tmp_path: Path) -> Non
     got: list[tuple[int, Any]] = []
     with Reader(bag) as r:
         for conn, log_ns, raw in r.messages():
-            if conn.msgtype == "sensor_msgs/msg/Image":
-                from companion.io.frames import decode_image
-
-                f = decode_image(bytes(raw), "visible")
+            if conn.topic == "/uav/camera/visible":
+                png = conn.msgtype == "sensor_msgs/msg/CompressedImage"
+                assert png == (frames == "png"), conn.msgtype
+                f = decode_frame(bytes(raw), "visible", compressed=png)
                 assert f.stamp_us == 5_000 and log_ns == 6_000_000 and np.array_equal(f.image, img)
                 continue
             got += [(log_ns, s) for s in _decode_sample(conn.msgtype, bytes(raw), True)]
@@ -270,6 +272,31 @@ def test_input_recorder_writes_what_the_replay_reads_back(tmp_path: Path) -> Non
     np.testing.assert_array_equal(lp.v_ned_mps, [1.0, 0.5, -0.2])
     with pytest.raises(OSError, match="exists"):
         InputRecorder(str(bag), {"visible": "/uav/camera/visible"})
+
+
+def test_input_recorder_keeps_16_bit_frames_exactly_in_less_space(tmp_path: Path) -> None:
+    """A thermal camera's 16-bit radiometric frame (noise in its low bits) comes back bit for bit from the
+    PNG record, which is smaller than the raw one; an unknown frame format is refused at start."""
+    from companion.io.frames import decode_frame
+    from companion.io.input_recorder import InputRecorder
+    from companion.types import Frame
+
+    rng = np.random.default_rng(3)
+    ramp = np.add.outer(np.arange(480), np.arange(640)) * 20 + 20_000
+    img = (ramp + rng.normal(0, 30, ramp.shape)).clip(0, 65535).astype(np.uint16)
+    sizes = {}
+    for frames in ("png", "raw"):
+        rec = InputRecorder(str(tmp_path / frames), {"thermal": "/t"}, frames=frames)
+        rec.put(Frame(7_000, "thermal", img), 7_000)
+        rec.close()
+        sizes[frames] = sum(f.stat().st_size for f in (tmp_path / frames).iterdir())
+        with Reader(tmp_path / frames) as r:
+            ((conn, _, raw),) = [m for m in r.messages() if m[0].topic == "/t"]
+            f = decode_frame(bytes(raw), "thermal", compressed=frames == "png")
+        assert f.image.dtype == np.uint16 and np.array_equal(f.image, img)
+    assert sizes["png"] < 0.8 * sizes["raw"], sizes
+    with pytest.raises(ValueError, match="jpeg"):
+        InputRecorder(str(tmp_path / "j"), {"thermal": "/t"}, frames="jpeg")
 
 
 def test_input_recorder_drops_and_counts_when_the_disk_falls_behind(tmp_path: Path) -> None:

@@ -205,13 +205,22 @@ def encode_image(image: np.ndarray, stamp_us: int, frame_id: str = "camera", enc
 
 
 def encode_compressed(
-    image: np.ndarray, stamp_us: int, frame_id: str = "camera", fmt: str = "png", jpeg_quality: int = 90
+    image: np.ndarray,
+    stamp_us: int,
+    frame_id: str = "camera",
+    fmt: str = "png",
+    jpeg_quality: int = 90,
+    png_level: int = 3,
 ) -> bytes:
-    """Image -> CDR ``sensor_msgs/msg/CompressedImage`` bytes; fmt ``png`` (lossless, 8/16 bit) or ``jpeg``."""
+    """Image -> CDR ``sensor_msgs/msg/CompressedImage`` bytes; fmt ``png`` (lossless, 8/16 bit; zlib level
+    ``png_level`` 0-9, OpenCV's default 3) or ``jpeg``."""
     ext = {"png": ".png", "jpeg": ".jpg", "jpg": ".jpg"}.get(fmt.lower())
     if ext is None:
         raise FrameError(UNKNOWN_ENCODING, f"cannot compress as {fmt!r}")
-    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if ext == ".jpg" else []
+    if ext == ".jpg":
+        params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
+    else:
+        params = [cv2.IMWRITE_PNG_COMPRESSION, int(png_level)]
     ok, buf = cv2.imencode(ext, image, params)
     if not ok:
         raise FrameError(BAD_IMAGE, f"OpenCV could not encode {image.shape} {image.dtype} as {fmt}")
