@@ -7,7 +7,11 @@ counted; each is published at its capture time at the target rate. Latency = arr
 CPU per frame = the daemon process's user+system time over the run / frames it received.
 
     python -m bench latency [--quick] [--json bench/results/latency.json] [--rate 50] [--estimator georef]
-        [--opencv-threads N]
+        [--opencv-threads N] [--record-inputs raw|png]
+
+``--record-inputs``: the daemon also records its inputs (``daemon.record_inputs``, frames as
+``daemon.record_frames``), to measure what the record costs the frames' latency; the bag's size and the
+frames in it are reported.
 """
 
 from __future__ import annotations
@@ -37,7 +41,12 @@ def _cpu_s(pid: int) -> float:
 
 
 def run(
-    rate_hz: float, duration_s: float, estimator: str, seed: int, opencv_threads: int | None = None
+    rate_hz: float,
+    duration_s: float,
+    estimator: str,
+    seed: int,
+    opencv_threads: int | None = None,
+    record: str = "off",
 ) -> dict:
     from companion.config import load_config
     from companion.geometry import CameraIntrinsics, camera_pose, rpy_from_rot
@@ -110,6 +119,9 @@ def run(
     }
     if opencv_threads is not None:
         overrides["daemon.opencv_threads"] = opencv_threads
+    if record != "off":
+        overrides["daemon.record_inputs"] = str(tmp / "inputs")
+        overrides["daemon.record_frames"] = record
     config = ROOT / "configs/sim_mars.toml"
     daemon_cfg = load_config(config).daemon  # what the daemon runs with unless overridden
     cmd = [sys.executable, "-m", "companion", "run", "--config", str(config)]
@@ -142,6 +154,14 @@ def run(
         pub.undeclare()
         session.close()
         log.close()
+    recorded: dict[str, float] = {}
+    if record != "off":
+        from rosbags.rosbag2 import Reader
+
+        with Reader(tmp / "inputs") as bag:
+            frames = sum(c.msgcount for c in bag.connections if c.topic == "/uav/camera/nadir")
+        size = sum(f.stat().st_size for f in (tmp / "inputs").iterdir())
+        recorded = {"frames": frames, "mb": size / 1e6, "mb_per_s": size / 1e6 / (n / rate_hz)}
     recs = [r for r in ap.accepted() if r.usec >= t0_us[0] + ap.true_offset_us() - 1000]
     lat_ms = np.array([(r.recv_boot_us - r.usec) / 1000.0 for r in recs])
     span_s = n / rate_hz
@@ -158,6 +178,8 @@ def run(
         "max_ms": float(lat_ms.max()) if len(lat_ms) else None,
         "cpu_ms_per_frame": 1000.0 * (cpu1 - cpu0) / n,
         "rejected_by_autopilot": ap.rejected(),
+        "record_inputs": record,
+        "recorded": recorded,
         "dem_degradation": deg.describe(),
         "companion_log": str(tmp / "companion.log"),
     }
@@ -173,9 +195,15 @@ def main(argv: list[str]) -> int:
         default=None,
         help="the daemon's daemon.opencv_threads (default: the config's, 1; 0 = OpenCV's default, one per core)",
     )
+    p.add_argument(
+        "--record-inputs",
+        default="off",
+        choices=["off", "raw", "png"],
+        help="the daemon records its inputs, frames raw or in PNG (daemon.record_frames); default off",
+    )
     a = p.parse_args(argv)
     duration = 8.0 if a.quick else 30.0
-    r = run(a.rate, duration, a.estimator, a.seed, a.opencv_threads)
+    r = run(a.rate, duration, a.estimator, a.seed, a.opencv_threads, a.record_inputs)
     print(
         table(
             ["estimator", "rate Hz", "sent", "received", "fps", "p50 ms", "p99 ms", "max ms", "CPU ms/frame"],
@@ -193,11 +221,16 @@ def main(argv: list[str]) -> int:
                 ]
             ],
             title=f"frame capture -> VISION_POSITION_ESTIMATE received, 480x480, {os.cpu_count()} cores, "
-            f"OpenCV threads {r['opencv_threads'] or 'default'} "
+            f"OpenCV threads {r['opencv_threads'] or 'default'}, record {r['record_inputs']} "
             f"(targets: >= 50 fps, p99 <= 30 ms); {r['dem_degradation']}",
         )
     )
     if r["rejected_by_autopilot"]:
         print(f"rejected by the autopilot: {r['rejected_by_autopilot']}")
+    if r["recorded"]:
+        rec = r["recorded"]
+        print(
+            f"recorded {rec['frames']} of {r['frames_sent']} frames, {rec['mb']:.1f} MB ({rec['mb_per_s']:.2f} MB/s)"
+        )
     write_json(a.json, {"quick": a.quick, **r})
     return 0
