@@ -420,6 +420,8 @@ def _print_replay(s: Any) -> None:
     elif s.topics.get("truth"):
         print("  no estimate to compare with the truth")
     print(f"  estimates log: {s.estimates_csv} (TUM: {s.estimates_tum})")
+    if s.plot:
+        print(f"  plot: {s.plot}")
 
 
 def cmd_replay(cfg: CompanionConfig, a: Any) -> int:

@@ -167,6 +167,8 @@ class ReplaySummary:
     distance_m: float | None = None
     estimates_csv: str = ""
     estimates_tum: str = ""
+    plot: str = ""
+    """``trajectory.png``: the track over the truth and the error beside the 1-sigma sent (with a truth)."""
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -453,7 +455,8 @@ def _compare(
     out: Path,
 ) -> None:
     """Errors of the estimates that would have been sent against the truth at their own stamps (no
-    alignment: both are in the world frame), their covariance's consistency, the path length; truth.tum."""
+    alignment: both are in the world frame), their covariance's consistency, the path length; truth.tum and
+    trajectory.png."""
     with open(out / "truth.tum", "w") as f:
         for t, p, q in zip(t_truth, p_truth, q_truth, strict=True):
             f.write(f"{t * 1e-6:.6f} " + " ".join(f"{v:.6f}" for v in (*p, *q)) + "\n")
@@ -470,3 +473,9 @@ def _compare(
     summary.covariance_consistency = covariance_consistency(e[:, :2], cov[ok])
     inside = (t_truth >= t[0]) & (t_truth <= t[-1])
     summary.distance_m = float(np.sum(np.linalg.norm(np.diff(p_truth[inside], axis=0), axis=1)))
+    from companion.report import trajectory_plot
+
+    sigma_h = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
+    title = f"replay of {Path(summary.bag).name}: {len(rows)} estimates"
+    png = trajectory_plot(out / "trajectory.png", t_truth * 1e-6, p_truth, t * 1e-6, p, title, sigma_h)
+    summary.plot = str(png)

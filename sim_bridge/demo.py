@@ -50,34 +50,12 @@ def ape_table(truth_tum: Path, est_tum: Path, max_diff_s: float = 0.02) -> dict[
 
 
 def plot(run_dir: Path, truth_tum: Path, est_tum: Path, title: str) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """``trajectory.png`` of the run (``companion.report``) from its TUM files."""
+    from companion.report import trajectory_plot
 
     tr = np.loadtxt(truth_tum, ndmin=2)
-    es = np.loadtxt(est_tum, ndmin=2)
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 5.5))
-    ax1.plot(tr[:, 2], tr[:, 1], "k-", lw=1.5, label="truth")
-    if len(es):
-        ax1.plot(es[:, 2], es[:, 1], "r.", ms=2, label="companion estimate")
-    ax1.set_xlabel("east (m)")
-    ax1.set_ylabel("north (m)")
-    ax1.set_aspect("equal")
-    ax1.legend()
-    ax1.set_title(title)
-    if len(es):
-        p_truth = np.stack([np.interp(es[:, 0], tr[:, 0], tr[:, i]) for i in (1, 2, 3)], axis=1)
-        err = np.linalg.norm(es[:, 1:4] - p_truth, axis=1)
-        ax2.plot(es[:, 0], err, "r-", lw=0.8)
-    ax2.set_xlabel("time (s)")
-    ax2.set_ylabel("position error (m)")
-    ax2.grid(True, alpha=0.3)
-    fig.tight_layout()
-    out = run_dir / "trajectory.png"
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    es = np.loadtxt(est_tum, ndmin=2).reshape(-1, 8)
+    return trajectory_plot(run_dir / "trajectory.png", tr[:, 0], tr[:, 1:4], es[:, 0], es[:, 1:4], title)
 
 
 class StatusWatch:

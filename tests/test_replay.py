@@ -214,6 +214,9 @@ def test_replay_command_prints_the_error_and_writes_its_summary(
     summary = json.loads((out / "replay_summary.json").read_text())
     assert summary["topics"]["range"] is None and summary["estimator"]["counters"]["altimeter_updates"] == 0
     assert summary["estimator"]["counters"]["frames_without_altimeter"] > 0
+    # the picture of the flight beside its log, named in the output
+    assert summary["plot"] == str(out / "trajectory.png") and f"plot: {out / 'trajectory.png'}" in text
+    assert (out / "trajectory.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # a second replay into the same directory would append to its estimates log: refused, exit 2
     assert companion_main(["replay", str(flight), "--config", str(CONFIG), "--out", str(out)]) == 2
     assert "holds a replay already" in capsys.readouterr().err
