@@ -12,7 +12,7 @@ def test_recorder_bench_reads_back_every_frame_and_png_is_smaller(tmp_path: Path
 
     rng = np.random.default_rng(0)
     ramp = np.add.outer(np.arange(120), np.arange(160)).astype(float)
-    frames = [
+    frames: list[tuple[str, np.ndarray]] = [
         ("visible", (ramp + rng.normal(0, 3, ramp.shape)).clip(0, 255).astype(np.uint8)),
         ("thermal", (ramp * 40 + 9000 + rng.normal(0, 20, ramp.shape)).astype(np.uint16)),
     ] * 3
