@@ -425,6 +425,8 @@ def _replay(
     summary.estimates_csv, summary.estimates_tum = str(elog.csv_path), str(elog.tum_path)
     if len(t_truth) >= 2:
         _compare(summary, rows, t_truth, p_truth, q_truth, out)
+    elif rows:  # a real flight has no truth: the track and the 1-sigma sent
+        summary.plot = str(_plot(summary, rows, np.zeros(0, np.int64), np.zeros((0, 3)), out))
     return summary
 
 
@@ -473,9 +475,24 @@ def _compare(
     summary.covariance_consistency = covariance_consistency(e[:, :2], cov[ok])
     inside = (t_truth >= t[0]) & (t_truth <= t[-1])
     summary.distance_m = float(np.sum(np.linalg.norm(np.diff(p_truth[inside], axis=0), axis=1)))
+    summary.plot = str(_plot(summary, rows, t_truth, p_truth, out))
+
+
+def _plot(
+    summary: ReplaySummary,
+    rows: list[tuple[int, np.ndarray, np.ndarray]],
+    t_truth: np.ndarray,
+    p_truth: np.ndarray,
+    out: Path,
+) -> Path:
+    """``trajectory.png``: the estimates that would have been sent (and the truth, when there is one)."""
     from companion.report import trajectory_plot
 
+    t = np.array([r[0] for r in rows], np.int64)
+    p = np.stack([r[1] for r in rows])
+    cov = np.stack([r[2] for r in rows])
     sigma_h = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
-    title = f"replay of {Path(summary.bag).name}: {len(rows)} estimates"
-    png = trajectory_plot(out / "trajectory.png", t_truth * 1e-6, p_truth, t * 1e-6, p, title, sigma_h)
-    summary.plot = str(png)
+    title = f"replay of {Path(summary.bag).name}: {len(rows)} estimates" + (
+        "" if len(t_truth) else ", no truth"
+    )
+    return trajectory_plot(out / "trajectory.png", t_truth * 1e-6, p_truth, t * 1e-6, p, title, sigma_h)

@@ -121,6 +121,15 @@ def test_replay_runs_the_dual_ekf_over_the_bag_and_measures_it(flight: Path, tmp
     assert len(truth) == 241 and np.allclose(np.linalg.norm(truth[:, 4:], axis=1), 1.0)
 
 
+def test_a_flight_without_truth_still_gets_its_picture(flight: Path, tmp_path: Path) -> None:
+    """A real flight has no truth: the replay draws the track and the 1-sigma sent, and claims no error."""
+    cfg = load_config(CONFIG)
+    s = replay_bag(flight, cfg, build_estimator(cfg), tmp_path, overrides={"truth": ""})
+    assert s.topics["truth"] is None and s.error_m is None and s.would_send == 24
+    assert s.plot == str(tmp_path / "trajectory.png") and not (tmp_path / "truth.tum").exists()
+    assert (tmp_path / "trajectory.png").read_bytes()[:4] == b"\x89PNG"
+
+
 def test_a_bag_in_ros_enu_flu_frames_replays_to_the_same_estimates(flight: Path, tmp_path: Path) -> None:
     enu = tmp_path / "enu"
     write_flight_bag(enu, FlightBagOptions(trajectory="1", duration_s=12.0, ned_frd=False))
