@@ -168,7 +168,7 @@ class ReplaySummary:
     estimates_csv: str = ""
     estimates_tum: str = ""
     plot: str = ""
-    """``trajectory.png``: the track over the truth and the error beside the 1-sigma sent (with a truth)."""
+    """``trajectory.png``: the track (over the truth, with the error, when there is one) and the 1-sigma sent."""
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)

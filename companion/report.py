@@ -40,9 +40,10 @@ def trajectory_plot(
     ax1.set_xlabel("east (m)")
     ax1.set_ylabel("north (m)")
     ax1.set_aspect("equal", adjustable="datalim")  # a straight track keeps a readable box
-    ax1.legend()
+    if len(p_truth) or len(p_est):
+        ax1.legend()
     ax1.set_title(title)
-    if len(t_truth_s) >= 2:
+    if len(t_truth_s) >= 2 and len(t_est_s):
         inside = (t_est_s >= t_truth_s[0]) & (t_est_s <= t_truth_s[-1])
         t = t_est_s[inside]
         truth = np.stack([np.interp(t, t_truth_s, p_truth[:, i]) for i in range(3)], axis=1)

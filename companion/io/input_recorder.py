@@ -63,11 +63,12 @@ Item = Frame | ImuSample | AttitudeSample | AltimeterSample | LocalPositionSampl
 
 FRAME_FORMATS = ("png", "raw")
 PNG_LEVEL = 1
-WRITER_NICE = 10
-"""Niceness added to the writer thread (Linux: a thread is a task with its own nice value): its encoding
-yields the CPU to the estimator and the links when they want it, so recording does not add latency."""
 """zlib level of the recorded PNGs: level 3 (OpenCV's default) or 6 saves 1-4 % more bytes of a noisy frame
 for 1.3-4.3x the time (measured on the Europa pair)."""
+WRITER_NICE = 10
+"""Niceness added to the writer thread (Linux: a thread is a task with its own nice value): its encoding
+takes the CPU the estimator and the links leave. Measured with it (``python -m bench latency
+--record-inputs``): recording adds 1-2 ms to the median capture-to-send latency, PNG up to 2.5 ms more."""
 
 
 def inputs_path(template: str, start_time_s: float | None = None) -> Path:
