@@ -426,7 +426,8 @@ def _replay(
     if len(t_truth) >= 2:
         _compare(summary, rows, t_truth, p_truth, q_truth, out)
     elif rows:  # a real flight has no truth: the track and the 1-sigma sent
-        summary.plot = str(_plot(summary, rows, np.zeros(0, np.int64), np.zeros((0, 3)), out))
+        t, p, cov = _rows_arrays(rows)
+        summary.plot = str(_plot(summary, t, p, cov, np.zeros(0, np.int64), np.zeros((0, 3)), out))
     return summary
 
 
@@ -465,9 +466,7 @@ def _compare(
     if not rows:
         summary.error_m = {"count": 0}
         return
-    t = np.array([r[0] for r in rows], np.int64)
-    p = np.stack([r[1] for r in rows])
-    cov = np.stack([r[2] for r in rows])
+    t, p, cov = _rows_arrays(rows)
     pt = truth_at(t_truth, p_truth, t)
     ok = np.all(np.isfinite(pt), axis=1)
     e = p[ok] - pt[ok]
@@ -475,12 +474,24 @@ def _compare(
     summary.covariance_consistency = covariance_consistency(e[:, :2], cov[ok])
     inside = (t_truth >= t[0]) & (t_truth <= t[-1])
     summary.distance_m = float(np.sum(np.linalg.norm(np.diff(p_truth[inside], axis=0), axis=1)))
-    summary.plot = str(_plot(summary, rows, t_truth, p_truth, out))
+    summary.plot = str(_plot(summary, t, p, cov, t_truth, p_truth, out))
+
+
+def _rows_arrays(rows: list[tuple[int, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The estimates that would have been sent as arrays: stamps (N,) us, positions (N,3), horizontal
+    covariances (N,2,2)."""
+    return (
+        np.array([r[0] for r in rows], np.int64),
+        np.stack([r[1] for r in rows]),
+        np.stack([r[2] for r in rows]),
+    )
 
 
 def _plot(
     summary: ReplaySummary,
-    rows: list[tuple[int, np.ndarray, np.ndarray]],
+    t: np.ndarray,
+    p: np.ndarray,
+    cov: np.ndarray,
     t_truth: np.ndarray,
     p_truth: np.ndarray,
     out: Path,
@@ -488,11 +499,6 @@ def _plot(
     """``trajectory.png``: the estimates that would have been sent (and the truth, when there is one)."""
     from companion.report import trajectory_plot
 
-    t = np.array([r[0] for r in rows], np.int64)
-    p = np.stack([r[1] for r in rows])
-    cov = np.stack([r[2] for r in rows])
     sigma_h = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
-    title = f"replay of {Path(summary.bag).name}: {len(rows)} estimates" + (
-        "" if len(t_truth) else ", no truth"
-    )
+    title = f"replay of {Path(summary.bag).name}: {len(t)} estimates" + ("" if len(t_truth) else ", no truth")
     return trajectory_plot(out / "trajectory.png", t_truth * 1e-6, p_truth, t * 1e-6, p, title, sigma_h)
