@@ -13,8 +13,8 @@ busy) are not in the record:
 - each camera's frames on its topic (the configured key with a leading ``/``), as decoded (mono8 / mono16):
   ``sensor_msgs/msg/CompressedImage`` in lossless PNG (``frames="png"``, the default) or
   ``sensor_msgs/msg/Image`` (``frames="raw"``). A camera's sensor noise leaves little to compress: PNG
-  keeps 64 % of the bytes of the Europa pair and 67 % of the demo's camera, for 13 ms (640 x 480, the pair's
-  mean) and 6 ms (480 x 480, 8-bit) of the writer thread's CPU per frame: 5 % of a core for the pair at 2 Hz,
+  keeps 64 % of the bytes of the Europa pair and 68 % of the demo's camera, for 11 ms (640 x 480, the pair's
+  mean) and 6 ms (480 x 480, 8-bit) of the writer thread's CPU per frame: 4 % of a core for the pair at 2 Hz,
   9 % for the demo's camera at 15 Hz (``python -m bench recorder``, bench/results/recorder.json); a camera
   that sent JPEG is stored lossless, larger;
 - ``/companion/imu``: ``sensor_msgs/msg/Imu``, FRD (``base_link_frd``), no orientation (covariance -1);
@@ -220,8 +220,8 @@ class InputRecorder:
             os.setpriority(
                 os.PRIO_PROCESS, threading.get_native_id(), os.getpriority(os.PRIO_PROCESS, 0) + WRITER_NICE
             )
-        except (AttributeError, OSError):
-            pass
+        except (AttributeError, OSError) as exc:
+            log.debug("inputs record: writer thread left at the daemon's priority (%s)", exc)
         while True:
             got = self._queue.get()
             if got is None:
