@@ -40,23 +40,24 @@ def europa_frames(n_pairs: int) -> tuple[list[tuple[str, np.ndarray]], float]:
 
 
 def demo_frames(n: int) -> tuple[list[tuple[str, np.ndarray]], float]:
-    """n frames of the demo's camera (scene 08, 480 x 480, 100 m above the ground on its circle) and its
-    15 Hz rate."""
-    from companion.geometry import CameraIntrinsics, camera_pose, rot_from_rpy
+    """n frames of the demo's camera: scene 08, 480 x 480, along the simulator's default trajectory (the demo's
+    circle, 100 m above the ground) at its 15 Hz, as ``bench latency`` renders them."""
+    from companion.geometry import CameraIntrinsics, camera_pose
     from sim_bridge.render import VisibleRenderer
+    from sim_bridge.sim import SimConfig, make_trajectory
     from sim_bridge.terrain import make_scene
 
     scene = make_scene("08", seed=0)
+    cfg = SimConfig()
     intr = CameraIntrinsics.from_focal_sensor(480, 480, 36.0, 36.0)
     renderer = VisibleRenderer(scene.dem, scene.albedo, scene.sun, intr)
-    ground = float(np.mean(scene.dem.height_m))
-    out: list[tuple[str, np.ndarray]] = []
-    for k in range(n):
-        a = 4.0 / 60.0 * k / 15.0  # 4 m/s on a 60 m circle, 15 Hz
-        R = rot_from_rpy(0.0, 0.0, a + np.pi / 2)
-        p = np.array([60.0 * np.cos(a), 60.0 * np.sin(a), -(ground + 100.0)])
-        out.append(("nadir", renderer.render(*camera_pose(R, p), seed=k)))
-    return out, 15.0
+    traj = make_trajectory(cfg, float(np.nanmean(scene.dem.height_m)))
+    states = traj.states(5.0 + np.arange(n) / cfg.camera_rate_hz)  # from 5 s: at speed
+    out = [
+        ("nadir", renderer.render(*camera_pose(s.R_world_body, s.p_world), seed=k))
+        for k, s in enumerate(states)
+    ]
+    return out, cfg.camera_rate_hz
 
 
 def record(frames: list[tuple[str, np.ndarray]], fmt: str, root: Path) -> dict[str, Any]:

@@ -330,7 +330,7 @@ class DaemonConfig(_Strict):
     # (``companion.io.input_recorder``; with PNG frames ~1.2 MB/s for the Europa camera pair at 2 Hz)
     record_inputs: str = ""
     # the recorded camera frames: "png" (lossless, 2/3 of the bytes for 6 ms of the writer thread's CPU per
-    # 480 x 480 8-bit frame, 13 ms per 640 x 480) or "raw" (sensor_msgs/Image, no encoding; bench "recorder")
+    # 480 x 480 8-bit frame, 11 ms per 640 x 480) or "raw" (sensor_msgs/Image, no encoding; bench "recorder")
     record_frames: Literal["png", "raw"] = "png"
     # the input record closes itself (readable) when the disk has less free space than this, MB
     record_min_free_mb: Annotated[float, Field(ge=0)] = 500.0
