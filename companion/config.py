@@ -303,6 +303,13 @@ class EkfConfig(_Strict):
     initial_velocity_sigma_mps: Annotated[float, Field(gt=0)] = _EKF.initial_velocity_sigma_mps
     initial_tilt_sigma_rad: Annotated[float, Field(gt=0, le=1)] = _EKF.initial_tilt_sigma_rad
     initial_yaw_sigma_rad: Annotated[float, Field(gt=0, le=3.2)] = _EKF.initial_yaw_sigma_rad
+    # the start's attitude: the autopilot's ATTITUDE samples within this many seconds of the first frame set
+    # averaged, each carried to it by the IMU's gyro (averages the attitude's sample-to-sample jitter, not a
+    # bias); 0 = the nearest sample alone
+    initial_attitude_window_s: Annotated[float, Field(ge=0, le=5)] = _EKF.initial_attitude_window_s
+    # a new landmark's inverse-depth prior: flat ground at the altimeter's height, with this relative sigma
+    # (the ground's relief over the height, roughly); raise it over rough ground
+    init_rho_rel_sigma: Annotated[float, Field(gt=0, le=2)] = _EKF.init_rho_rel_sigma
     # SIFT on the image scaled by this (0.5: the pyramid starts at the camera's resolution, ~2.6x faster than
     # 1.0); raise it on a computer with time to spare
     detect_scale: Annotated[float, Field(gt=0.1, le=1)] = _EKF.detect_scale

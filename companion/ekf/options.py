@@ -52,6 +52,9 @@ class EkfOptions:
     # Europa flights the mean error went 1.04 / 1.05 / 1.19 -> 0.79 / 0.70 / 0.73 m (visible / thermal / dual)
     # with 0.01 deg inside (docs/benchmarks.md, session 48)
     filter_yaw_sigma_rad: float = 1.7453292519943296e-4
+    # s, the daemon's start from the autopilot: its ATTITUDE samples this close to the first frame set averaged,
+    # each carried there by the IMU's gyro (``vis_thermal_ekf.start_attitude``); 0 = the nearest sample alone
+    initial_attitude_window_s: float = 1.0
     # --- visual measurements ---
     pixel_sigma_px: float = 1.0  # px, SIFT keypoint position noise (per axis): the visible camera's
     # and the thermal camera's (0 = ``pixel_sigma_px``); see ``pixel_sigma``

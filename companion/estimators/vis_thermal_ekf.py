@@ -16,11 +16,14 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Iterable, Mapping
+from collections import deque
+from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
 from companion.constants import GRAVITY_MPS2
@@ -29,7 +32,7 @@ from companion.ekf.landmarks import CameraModel
 from companion.ekf.options import EkfOptions, cameras_for_mode
 from companion.ekf.slam import SlamPose, VisThermalSlam
 from companion.ekf.so3 import quat_from_rot
-from companion.geometry import CameraIntrinsics, rot_from_rpy
+from companion.geometry import CameraIntrinsics, rot_from_rpy, rpy_from_rot
 from companion.lba.gauge import gauge_covariance
 from companion.types import (
     AltimeterSample,
@@ -41,7 +44,7 @@ from companion.types import (
     PoseEstimate,
 )
 
-__all__ = ["EkfOptions", "SequenceResult", "VisThermalEkfEstimator", "run_sequence"]
+__all__ = ["EkfOptions", "SequenceResult", "VisThermalEkfEstimator", "run_sequence", "start_attitude"]
 
 _BLAS = ThreadpoolController()
 log = logging.getLogger(__name__)
@@ -55,6 +58,65 @@ def _attitude_from_gravity(accel_mps2: np.ndarray, yaw_rad: float) -> np.ndarray
     return np.array([roll, pitch, yaw_rad])
 
 
+def start_attitude(
+    attitudes: Sequence[AttitudeSample],
+    gyro: Sequence[tuple[int, np.ndarray]],
+    stamp_us: int,
+    window_s: float,
+    max_extrapolation_s: float = 0.1,
+) -> np.ndarray | None:
+    """(3,) roll, pitch, yaw (rad) at ``stamp_us``: the mean of the ATTITUDE samples within ``window_s`` of it,
+    each carried to ``stamp_us`` by the body rates ``gyro`` ((stamp_us, (3,) rad/s FRD) samples) integrated
+    between the two stamps. None without any sample.
+
+    An autopilot's attitude jitters from sample to sample (a converged EKF3: ~0.2 deg roll/pitch, ~0.3 deg yaw);
+    the filter starts from one attitude and keeps its error as a tilt of the map, so averaging the ~50 samples
+    of a second shrinks the white part by ~7x (a slow error, e.g. the compass's yaw bias, stays). Samples the gyro
+    does not cover (beyond ``max_extrapolation_s`` of its first / last stamp) are left out; with none left, or
+    ``window_s`` <= 0, the sample nearest in time to ``stamp_us`` is returned as it is."""
+    if not attitudes:
+        return None
+    t_att = np.array([a.stamp_us for a in attitudes], dtype=np.int64)
+    near = attitudes[int(np.argmin(np.abs(t_att - stamp_us)))]
+    nearest = np.array([near.roll_rad, near.pitch_rad, near.yaw_rad])
+    if window_s <= 0 or len(gyro) < 2:
+        return nearest
+    order = np.argsort([g[0] for g in gyro], kind="stable")
+    gt = np.array([gyro[i][0] for i in order], dtype=np.int64)
+    gw = np.array([np.asarray(gyro[i][1], float) for i in order])
+    # body rotation since the first gyro stamp, R(t0)^T R(t_k) (trapezoidal rate over each step); a hand loop
+    # because scipy's Rotation has no cumulative product, and a start runs it once over ~100 samples
+    dt = np.diff(gt) * 1e-6
+    steps = Rotation.from_rotvec(0.5 * (gw[:-1] + gw[1:]) * dt[:, None])
+    cum = [Rotation.identity()]
+    for k in range(len(steps)):
+        cum.append(cum[-1] * steps[k])
+    ext_us = max_extrapolation_s * 1e6
+
+    def since_first(t_us: int) -> Rotation | None:
+        if t_us < gt[0] - ext_us or t_us > gt[-1] + ext_us:
+            return None
+        k = int(np.clip(np.searchsorted(gt, t_us, side="right") - 1, 0, len(gt) - 1))
+        return cum[k] * Rotation.from_rotvec(gw[k] * ((t_us - gt[k]) * 1e-6))
+
+    at_stamp = since_first(stamp_us)
+    if at_stamp is None:
+        return nearest
+    carried = []
+    for a, t in zip(attitudes, t_att):
+        if abs(int(t) - stamp_us) > window_s * 1e6:
+            continue
+        at_sample = since_first(int(t))
+        if at_sample is None:
+            continue
+        R_wb = Rotation.from_matrix(rot_from_rpy(a.roll_rad, a.pitch_rad, a.yaw_rad))
+        carried.append(R_wb * at_sample.inv() * at_stamp)
+    if not carried:
+        return nearest
+    mean = Rotation.concatenate(carried).mean()
+    return np.asarray(rpy_from_rot(mean.as_matrix()), float)
+
+
 class VisThermalEkfEstimator:
     """Implements ``companion.types.Estimator`` for paper 2's EKF-SLAM.
 
@@ -65,8 +127,9 @@ class VisThermalEkfEstimator:
       extrapolated to the frame's stamp with its velocity): the vision takes over from the vehicle's own
       navigation, and until the autopilot has sent one the frames are counted in ``waiting_for_position``;
     - velocity: ``initial_v_world``, or if None the autopilot's LOCAL_POSITION_NED velocity, else zero;
-    - attitude: ``initial_rpy``, or if None the latest ATTITUDE sample, else gravity from the IMU with
-      yaw ``initial_yaw_rad``.
+    - attitude: ``initial_rpy``, or if None the autopilot's ATTITUDE samples of the last
+      ``options.initial_attitude_window_s`` averaged, each carried to the frame's stamp by the IMU's gyro
+      (``start_attitude``), else gravity from the IMU with yaw ``initial_yaw_rad``.
     A LOCAL_POSITION_NED sample older than ``max_local_position_age_s`` at the frame is not used.
     """
 
@@ -111,7 +174,9 @@ class VisThermalEkfEstimator:
         self._v0 = None if initial_v_world is None else np.asarray(initial_v_world, float).copy()
         self._rpy0 = None if initial_rpy is None else np.asarray(initial_rpy, float).copy()
         self._yaw0 = float(initial_yaw_rad)
-        self._attitude: np.ndarray | None = None
+        # the start's buffers (stamp_us, sample), for ``start_attitude``
+        self._attitudes: deque[tuple[int, AttitudeSample]] = deque()
+        self._gyro: deque[tuple[int, np.ndarray]] = deque()
         self._local: LocalPositionSample | None = None
         self._pending: list[ImuSample | AltimeterSample] = []
         self._last_good: SlamPose | None = None
@@ -145,13 +210,24 @@ class VisThermalEkfEstimator:
 
     # -- autopilot inputs ----------------------------------------------------------------------------
     def on_attitude(self, s: AttitudeSample) -> None:
-        """Used for the initial attitude only (the filter estimates its own afterwards)."""
-        self._attitude = np.array([s.roll_rad, s.pitch_rad, s.yaw_rad])
+        """Used for the initial attitude only (the filter estimates its own afterwards): the samples of the last
+        few seconds are kept for ``start_attitude``."""
+        self._keep(self._attitudes, s.stamp_us, s)
 
     def on_imu(self, s: ImuSample) -> None:
-        """Hold an IMU sample for the filter (``_hold``); propagation (eqs. 1-4) happens as it needs it."""
+        """Hold an IMU sample for the filter (``_hold``); propagation (eqs. 1-4) happens as it needs it. Its
+        gyro is also kept a few seconds to carry ATTITUDE samples to the start (``start_attitude``)."""
         self._last_imu_us = s.stamp_us if self._last_imu_us is None else max(self._last_imu_us, s.stamp_us)
+        self._keep(self._gyro, s.stamp_us, np.asarray(s.gyro_rps, float))
         self._hold(s)
+
+    def _keep(self, buf: deque[tuple[int, Any]], stamp_us: int, item: Any) -> None:
+        """Append to a start buffer, dropping what is older than a start could use (its window, the frames'
+        hold_s and a second's margin)."""
+        buf.append((stamp_us, item))
+        horizon_us = (self.options.initial_attitude_window_s + self.hold_s + 1.0) * 1e6
+        while buf and buf[0][0] < stamp_us - horizon_us:
+            buf.popleft()
 
     def on_local_position(self, s: LocalPositionSample) -> None:
         """The autopilot's position and velocity: used for the initial state only (see the class doc)."""
@@ -289,7 +365,9 @@ class VisThermalEkfEstimator:
             v0 = np.zeros(3) if lp is None else np.asarray(lp.v_ned_mps, float)
         rpy = self._rpy0
         if rpy is None:
-            rpy = self._attitude
+            rpy = start_attitude(
+                [a for _, a in self._attitudes], self._gyro, stamp_us, self.options.initial_attitude_window_s
+            )
         if rpy is None:
             imu = self.slam.latest_imu()
             rpy = (
