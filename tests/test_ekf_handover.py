@@ -33,7 +33,8 @@ def imu(t_us: int) -> ImuSample:
 def test_starts_from_the_autopilots_position_and_velocity_once_it_has_one() -> None:
     est = estimator()
     t0 = 10_000_000
-    est.on_attitude(AttitudeSample(t0 - 20_000, 0.01, -0.02, 0.7))
+    for t in range(t0 - 1_020_000, t0, 20_000):  # the autopilot's attitude, streaming before the frames
+        est.on_attitude(AttitudeSample(t, 0.01, -0.02, 0.7))
     assert est.on_detections(t0, {"visible": NONE}) is None
     assert est.counters["waiting_for_position"] == 1 and not est.slam.started
     v = np.array([1.2, -0.4, 0.1])
@@ -160,3 +161,25 @@ def test_the_estimator_starts_from_the_averaged_attitude() -> None:
     # the latest sample, what the estimator used to start from, is 280 ms of turning (~5 deg) away
     assert _angle(np.array([att[-1].roll_rad, att[-1].pitch_rad, att[-1].yaw_rad]), R_true) > 0.05
     assert _angle(got, R_true) < 0.002
+
+
+def test_a_start_without_a_second_of_attitude_waits_for_it_but_not_longer() -> None:
+    # a replay whose record begins with the first frames: ATTITUDE from then on, frame sets at 2 Hz
+    est = estimator()
+    t0 = 20_000_000
+    est.on_local_position(LocalPositionSample(t0, np.array([0.0, 0.0, -60.0]), np.zeros(3)))
+    for k in range(3):
+        for t in range(t0 + (k - 1) * 500_000, t0 + k * 500_000 + 1, 20_000):
+            if t >= t0:
+                est.on_attitude(AttitudeSample(t, 0.0, 0.0, 0.3))
+        est.on_detections(t0 + k * 500_000, {"visible": NONE})
+        assert est.slam.started == (k == 2)
+    assert est.counters["waiting_for_attitude"] == 2 and est.counters["waiting_for_position"] == 0
+    # an attitude stream that stops: the start waits a window after the first frame set, then takes what it has
+    est = estimator()
+    est.on_local_position(LocalPositionSample(t0, np.array([0.0, 0.0, -60.0]), np.zeros(3)))
+    est.on_attitude(AttitudeSample(t0, 0.0, 0.0, 0.3))
+    for k in range(3):
+        est.on_detections(t0 + k * 500_000, {"visible": NONE})
+    assert est.slam.started and est.counters["waiting_for_attitude"] == 2
+    np.testing.assert_allclose(est.slam.pose(t0 + 1_000_000).rpy_rad, [0.0, 0.0, 0.3], atol=1e-9)

@@ -129,7 +129,9 @@ class VisThermalEkfEstimator:
     - velocity: ``initial_v_world``, or if None the autopilot's LOCAL_POSITION_NED velocity, else zero;
     - attitude: ``initial_rpy``, or if None the autopilot's ATTITUDE samples of the last
       ``options.initial_attitude_window_s`` averaged, each carried to the frame's stamp by the IMU's gyro
-      (``start_attitude``), else gravity from the IMU with yaw ``initial_yaw_rad``.
+      (``start_attitude``; with less than that window of samples yet, the start waits for them, at most that
+      long after the first frame set, counted in ``waiting_for_attitude``), else gravity from the IMU with yaw
+      ``initial_yaw_rad``.
     A LOCAL_POSITION_NED sample older than ``max_local_position_age_s`` at the frame is not used.
     """
 
@@ -178,6 +180,7 @@ class VisThermalEkfEstimator:
         self._attitudes: deque[tuple[int, AttitudeSample]] = deque()
         self._gyro: deque[tuple[int, np.ndarray]] = deque()
         self._local: LocalPositionSample | None = None
+        self._first_frame_us: int | None = None
         self._pending: list[ImuSample | AltimeterSample] = []
         self._last_good: SlamPose | None = None
         # the start's yaw uncertainty beyond the filter's own share (EkfOptions.filter_yaw_sigma_rad): the map
@@ -193,6 +196,7 @@ class VisThermalEkfEstimator:
             "reinit": 0,
             "missing_camera": 0,
             "waiting_for_position": 0,
+            "waiting_for_attitude": 0,  # frame sets before a second of ATTITUDE samples to start from
             # from the filter's counters, refreshed at each frame set
             "imu_samples": 0,
             "late_imu": 0,
@@ -305,8 +309,8 @@ class VisThermalEkfEstimator:
         self._check_inputs(stamp_us)
         self._feed(stamp_us)
         with _BLAS.limit(limits=1, user_api="blas"):
-            if not self.slam.started and not self._start(stamp_us):
-                self.counters["waiting_for_position"] += 1
+            if not self.slam.started and (waiting := self._start(stamp_us)) is not None:
+                self.counters[waiting] += 1
                 return None
             pose = self.slam.process_frame(stamp_us, dict(detections))
             c = self.slam.counters
@@ -347,8 +351,13 @@ class VisThermalEkfEstimator:
                 log.warning("%s: %s (deploy/README.md, section 5)", text, effect)
             self.warnings[key] = text
 
-    def _start(self, stamp_us: int) -> bool:
-        """Start the filter at ``stamp_us``; False (not started) while the initial position is unknown."""
+    def _start(self, stamp_us: int) -> str | None:
+        """Start the filter at ``stamp_us``; None if started, else the counter saying why not: the initial
+        position unknown (``waiting_for_position``), or less than ``initial_attitude_window_s`` of ATTITUDE
+        samples to average yet (``waiting_for_attitude``: a replay whose record begins with the first frames;
+        at most that long after the first frame set)."""
+        if self._first_frame_us is None:
+            self._first_frame_us = stamp_us
         lp = self._local
         dt_s = float("inf") if lp is None else (stamp_us - lp.stamp_us) * 1e-6
         if abs(dt_s) > self.max_local_position_age_s:
@@ -358,7 +367,15 @@ class VisThermalEkfEstimator:
         elif lp is not None:
             p0 = np.asarray(lp.p_ned_m, float) + np.asarray(lp.v_ned_mps, float) * dt_s
         else:
-            return False
+            return "waiting_for_position"
+        window_us = self.options.initial_attitude_window_s * 1e6
+        if (
+            self._rpy0 is None
+            and self._attitudes
+            and self._attitudes[-1][0] - self._attitudes[0][0] < window_us
+            and stamp_us - self._first_frame_us < window_us
+        ):
+            return "waiting_for_attitude"
         if self._v0 is not None:
             v0 = self._v0
         else:
@@ -379,7 +396,7 @@ class VisThermalEkfEstimator:
         self.slam.start(stamp_us, p0, v0, q)
         if self._gauge_pivot is None:  # a restart keeps the first start's turn: the yaw error since stays
             self._gauge_pivot = np.asarray(p0, float).copy()
-        return True
+        return None
 
     def _reinit(self, stamp_us: int) -> None:
         """Restart the filter at the last good pose (landmarks dropped) and bump reset_counter."""
