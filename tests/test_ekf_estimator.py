@@ -198,10 +198,15 @@ def test_configuration_errors_and_initial_attitude(flight):
         EkfOptions(mode="infrared")
     with pytest.raises(ValueError):
         EkfOptions(sampling="random")
-    # no initial attitude given: the first ATTITUDE sample is used
+    # no initial attitude given: the ATTITUDE sample is used (window 0: the nearest sample as it is; the
+    # average over a window: test_ekf_handover)
     st0 = flight["states"][0]
     est = VisThermalEkfEstimator(
-        EkfOptions(mode="thermal"), {"thermal": intr}, {"thermal": R_BODY_CAM_NADIR}, st0.p_world, st0.v_world
+        EkfOptions(mode="thermal", initial_attitude_window_s=0.0),
+        {"thermal": intr},
+        {"thermal": R_BODY_CAM_NADIR},
+        st0.p_world,
+        st0.v_world,
     )
     rpy = rpy_from_rot(st0.R_world_body)
     est.on_attitude(AttitudeSample(0, *rpy))

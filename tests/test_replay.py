@@ -111,12 +111,14 @@ def test_replay_runs_the_dual_ekf_over_the_bag_and_measures_it(flight: Path, tmp
     assert s.estimator["counters"]["imu_samples"] == 1201
     assert s.estimator["counters"]["altimeter_updates"] >= 100
     assert s.estimator["counters"]["frames_without_imu"] == 0
-    assert s.would_send == 24 and s.not_sent == {"status_initialising": 1}
-    assert s.error_m is not None and s.error_m["count"] == 24
+    # the record begins with the frames: the start waits for a second of ATTITUDE (two frame sets at 2 Hz)
+    assert s.estimator["counters"]["waiting_for_attitude"] == 2
+    assert s.would_send == 22 and s.not_sent == {"no_estimate": 2, "status_initialising": 1}
+    assert s.error_m is not None and s.error_m["count"] == 22
     # measured 0.24 m mean on the 20 s version of this flight; a filter without IMU or altimeter drifts metres
     assert s.error_m["mean"] < 1.0 and s.error_m["max"] < 2.0
     tum = np.loadtxt(tmp_path / "estimates.tum")
-    assert tum.shape == (24, 8)
+    assert tum.shape == (22, 8)
     truth = np.loadtxt(tmp_path / "truth.tum")
     assert len(truth) == 241 and np.allclose(np.linalg.norm(truth[:, 4:], axis=1), 1.0)
 
@@ -125,7 +127,7 @@ def test_a_flight_without_truth_still_gets_its_picture(flight: Path, tmp_path: P
     """A real flight has no truth: the replay draws the track and the 1-sigma sent, and claims no error."""
     cfg = load_config(CONFIG)
     s = replay_bag(flight, cfg, build_estimator(cfg), tmp_path, overrides={"truth": ""})
-    assert s.topics["truth"] is None and s.error_m is None and s.would_send == 24
+    assert s.topics["truth"] is None and s.error_m is None and s.would_send == 22
     assert s.plot == str(tmp_path / "trajectory.png") and not (tmp_path / "truth.tum").exists()
     assert (tmp_path / "trajectory.png").read_bytes()[:4] == b"\x89PNG"
 
@@ -219,7 +221,7 @@ def test_replay_command_prints_the_error_and_writes_its_summary(
     )
     assert rc == 0
     text = capsys.readouterr().out
-    assert "error against the truth over 24 estimates" in text and "not in the bag: range" in text
+    assert "error against the truth over 22 estimates" in text and "not in the bag: range" in text
     summary = json.loads((out / "replay_summary.json").read_text())
     assert summary["topics"]["range"] is None and summary["estimator"]["counters"]["altimeter_updates"] == 0
     assert summary["estimator"]["counters"]["frames_without_altimeter"] > 0

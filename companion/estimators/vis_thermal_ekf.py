@@ -181,6 +181,7 @@ class VisThermalEkfEstimator:
         self._gyro: deque[tuple[int, np.ndarray]] = deque()
         self._local: LocalPositionSample | None = None
         self._first_frame_us: int | None = None
+        self._estimates = 0  # estimates made (the first is INITIALISING)
         self._pending: list[ImuSample | AltimeterSample] = []
         self._last_good: SlamPose | None = None
         # the start's yaw uncertainty beyond the filter's own share (EkfOptions.filter_yaw_sigma_rad): the map
@@ -413,7 +414,7 @@ class VisThermalEkfEstimator:
         o = self.options
         matched = sum(pose.matched.values())
         tracked = sum(pose.n_landmarks.values())
-        if self.counters["frames"] == 1:
+        if self._estimates == 0:  # the filter's first frame set (after any waiting for the start's inputs)
             status = EstimateStatus.INITIALISING
         elif (
             pose.frames_since_match >= o.lost_after_frames
@@ -426,6 +427,7 @@ class VisThermalEkfEstimator:
             self._last_good = pose
         c = self.slam.counters
         cov = pose.covariance
+        self._estimates += 1
         if self._gauge_yaw_sigma > 0 and self._gauge_pivot is not None:
             cov = cov + gauge_covariance(pose.p_world, self._gauge_pivot, 0.0, self._gauge_yaw_sigma)
         return PoseEstimate(
