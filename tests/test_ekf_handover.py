@@ -168,11 +168,14 @@ def test_a_start_without_a_second_of_attitude_waits_for_it_but_not_longer() -> N
     est = estimator()
     t0 = 20_000_000
     est.on_local_position(LocalPositionSample(t0, np.array([0.0, 0.0, -60.0]), np.zeros(3)))
+    est.on_attitude(AttitudeSample(t0, 0.0, 0.0, 0.3))
+    sent = t0  # the newest ATTITUDE stamp given
     for k in range(3):
-        for t in range(t0 + (k - 1) * 500_000, t0 + k * 500_000 + 1, 20_000):
-            if t >= t0:
-                est.on_attitude(AttitudeSample(t, 0.0, 0.0, 0.3))
-        est.on_detections(t0 + k * 500_000, {"visible": NONE})
+        stamp = t0 + k * 500_000
+        while sent < stamp:  # 50 Hz up to the frame set's stamp
+            sent += 20_000
+            est.on_attitude(AttitudeSample(sent, 0.0, 0.0, 0.3))
+        est.on_detections(stamp, {"visible": NONE})
         assert est.slam.started == (k == 2)
     assert est.counters["waiting_for_attitude"] == 2 and est.counters["waiting_for_position"] == 0
     # an attitude stream that stops: the start waits a window after the first frame set, then takes what it has
