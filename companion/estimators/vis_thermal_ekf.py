@@ -216,14 +216,17 @@ class VisThermalEkfEstimator:
     # -- autopilot inputs ----------------------------------------------------------------------------
     def on_attitude(self, s: AttitudeSample) -> None:
         """Used for the initial attitude only (the filter estimates its own afterwards): the samples of the last
-        few seconds are kept for ``start_attitude``."""
-        self._keep(self._attitudes, s.stamp_us, s)
+        few seconds are kept for ``start_attitude`` until the filter has a good pose (a restart starts from that)."""
+        if self._last_good is None:
+            self._keep(self._attitudes, s.stamp_us, s)
 
     def on_imu(self, s: ImuSample) -> None:
         """Hold an IMU sample for the filter (``_hold``); propagation (eqs. 1-4) happens as it needs it. Its
-        gyro is also kept a few seconds to carry ATTITUDE samples to the start (``start_attitude``)."""
+        gyro is also kept a few seconds, until the filter has a good pose, to carry ATTITUDE samples to the
+        start (``start_attitude``)."""
         self._last_imu_us = s.stamp_us if self._last_imu_us is None else max(self._last_imu_us, s.stamp_us)
-        self._keep(self._gyro, s.stamp_us, np.asarray(s.gyro_rps, float))
+        if self._last_good is None:
+            self._keep(self._gyro, s.stamp_us, np.asarray(s.gyro_rps, float))
         self._hold(s)
 
     def _keep(self, buf: deque[tuple[int, Any]], stamp_us: int, item: Any) -> None:
