@@ -261,6 +261,10 @@ class EkfConfig(_Strict):
     # set from your cameras' matches (a sharper camera's matches weigh more in dual mode)
     pixel_sigma_px: Annotated[float, Field(gt=0)] = 1.0
     pixel_sigma_thermal_px: Annotated[float, Field(ge=0)] = 0.0
+    # > 0: a match's sigma follows its SIFT keypoint's size, the camera's sigma x size / this (px; 0.5x to
+    # 4x): coarse keypoints weigh less, fine ones more. 7.2 suits a visible-only vehicle (measured in
+    # docs/benchmarks.md, session 51); 0 = every match the camera's sigma
+    pixel_sigma_size_ref_px: Annotated[float, Field(ge=0)] = 0.0
     # match a landmark against the descriptor it was created with (false: the last matched keypoint's)
     anchor_descriptor: bool = True
     # a landmark SIFT misses is searched for with its first image patch (warped by the predicted motion,

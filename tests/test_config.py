@@ -99,6 +99,7 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         "ransac_threshold_px": 0.8,
         "pixel_sigma_px": 1.5,
         "pixel_sigma_thermal_px": 0.6,
+        "pixel_sigma_size_ref_px": 4.0,
         "anchor_descriptor": False,
         "patch_cameras": ("visible",),
         "patch_min_score": 0.9,

@@ -11,6 +11,7 @@ from scipy.stats import chi2
 from test_ekf_scene import G, camera_model, detections, make_scene, straight_flight
 
 from companion.ekf import landmarks as lmk
+from companion.ekf.features import Detections
 from companion.ekf.filter import InverseDepthEkf
 from companion.ekf.options import EkfOptions
 from companion.ekf.slam import VisThermalSlam
@@ -162,9 +163,10 @@ def test_imu_arriving_after_the_frame_changes_little():
     assert on_time[2].counters.stale_frames == 0
 
 
-def _noiseless_frames(opts: EkfOptions, t_end_s: float):
+def _noiseless_frames(opts: EkfOptions, t_end_s: float, size_px: float | None = None):
     """Run the SLAM (both cameras given; the mode picks) on the straight flight with a noiseless IMU and
-    altimeter, a frame every 0.5 s up to ``t_end_s``; yields (slam, pose) after each frame."""
+    altimeter, a frame every 0.5 s up to ``t_end_s``; yields (slam, pose) after each frame. ``size_px``: every
+    keypoint's SIFT size (None: unknown)."""
     traj = straight_flight(duration_s=16.0)
     slam = VisThermalSlam(opts, {"visible": camera_model(), "thermal": camera_model()}, G)
     st0 = traj.state_at(0.0)
@@ -180,6 +182,8 @@ def _noiseless_frames(opts: EkfOptions, t_end_s: float):
         st = traj.state_at(t)
         slam.add_altimeter(t_us, float(-st.p_world[2] / st.R_world_body[2, 2]))
         det, _ = detections(SCENE, st.R_world_body, st.p_world, rng)
+        if size_px is not None:
+            det = Detections(det.uv, det.desc, np.full(len(det), size_px))
         yield slam, slam.process_frame(t_us, {c: det for c in slam.camera_names})
 
 
@@ -245,6 +249,33 @@ def test_imu_before_the_first_frame_is_bounded():
         slam.add_imu(k * 10_000, np.array([0.0, 0.0, -G]), np.zeros(3))
     assert len(slam._queue) <= 26
     assert slam.latest_imu() is not None
+
+
+def test_match_sigma_follows_the_keypoint_size():
+    o = EkfOptions(pixel_sigma_px=0.8, pixel_sigma_thermal_px=0.4)
+    assert o.match_sigma("visible", 30.0) == 0.8  # 0 (the default): every match the camera's sigma
+    o = replace(o, pixel_sigma_size_ref_px=7.2)
+    assert o.match_sigma("visible", 7.2) == pytest.approx(0.8)
+    assert o.match_sigma("visible", 14.4) == pytest.approx(1.6)
+    assert o.match_sigma("thermal", 14.4) == pytest.approx(0.8)
+    assert o.match_sigma("visible", 1.0) == pytest.approx(0.4)  # at least half the camera's sigma
+    assert o.match_sigma("visible", 100.0) == pytest.approx(3.2)  # at most four times
+    assert o.match_sigma("visible", None) == 0.8  # size unknown
+    with pytest.raises(ValueError, match="pixel_sigma_size_ref_px"):
+        EkfOptions(pixel_sigma_size_ref_px=-1.0)
+
+
+@pytest.mark.parametrize("size_px, looser", [(28.8, True), (3.6, False)])
+def test_matches_are_weighed_by_their_keypoints_size(size_px, looser):
+    """With ``pixel_sigma_size_ref_px`` the same matches of coarse keypoints (4x the reference) leave the
+    filter less sure of its position than one sigma for all, those of fine keypoints (half of it) surer."""
+    sigma = {}
+    for ref in (0.0, 7.2):
+        opts = EkfOptions(mode="visible", max_landmarks_per_camera=16, pixel_sigma_size_ref_px=ref, seed=0)
+        pose = list(_noiseless_frames(opts, 5.0, size_px=size_px))[-1][1]
+        assert sum(pose.matched.values()) >= 8
+        sigma[ref] = float(np.sqrt(np.trace(pose.covariance[:3, :3])))
+    assert (sigma[7.2] > 1.1 * sigma[0.0]) if looser else (sigma[7.2] < 0.9 * sigma[0.0]), sigma
 
 
 def test_pixel_sigma_per_camera():

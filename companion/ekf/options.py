@@ -14,6 +14,9 @@ MODES = ("visible", "thermal", "dual")
 SAMPLING_METHODS = ("kde", "uniform")
 """New-landmark sampling: spatial diversity D(l) = -log f(l) (eq. 8) or uniform (Brunner et al.)."""
 
+MATCH_SIGMA_FACTORS = (0.5, 4.0)
+"""Smallest and largest factor ``pixel_sigma_size_ref_px`` puts on a camera's pixel sigma."""
+
 
 def cameras_for_mode(mode: str) -> tuple[str, ...]:
     """Camera names used by a mode: ("visible",), ("thermal",) or ("visible", "thermal")."""
@@ -59,6 +62,12 @@ class EkfOptions:
     pixel_sigma_px: float = 1.0  # px, SIFT keypoint position noise (per axis): the visible camera's
     # and the thermal camera's (0 = ``pixel_sigma_px``); see ``pixel_sigma``
     pixel_sigma_thermal_px: float = 0.0
+    # px, > 0: a SIFT match's sigma in the update follows its keypoint's size, the camera's sigma x size / this,
+    # from 0.5x to 4x (``MATCH_SIGMA_FACTORS``): a keypoint found at a coarser level of the pyramid is located
+    # less well (at ``detect_scale`` 0.5 the smallest SIFT keypoints measure ~3.6 px, the next octave's ~7.2 px).
+    # The gate and a new landmark's ray keep the camera's sigma (the gate is drawn before a keypoint is
+    # chosen). 0 = every match the camera's sigma (the paper's)
+    pixel_sigma_size_ref_px: float = 0.0
     first_estimate_jacobians: bool = True  # FEJ on landmarks (Huang et al. 2008), see ``ekf.filter``
     one_point_ransac: bool = True  # refuse matches the others disagree with (Civera et al. 2010; ``ransac``)
     # px, a match supports a one-match hypothesis within this distance: about twice the median error of a
@@ -157,6 +166,15 @@ class EkfOptions:
             return self.pixel_sigma_thermal_px
         return self.pixel_sigma_px
 
+    def match_sigma(self, camera: str, size_px: float | None) -> float:
+        """Pixel sigma of one of a camera's matches from its keypoint's size (full-resolution px; None:
+        unknown, the camera's sigma), see ``pixel_sigma_size_ref_px``."""
+        sigma = self.pixel_sigma(camera)
+        if self.pixel_sigma_size_ref_px <= 0 or size_px is None:
+            return sigma
+        lo, hi = MATCH_SIGMA_FACTORS
+        return sigma * min(max(size_px / self.pixel_sigma_size_ref_px, lo), hi)
+
     def sift_settings(self, camera: str) -> tuple[int, float]:
         """(nfeatures, contrast threshold) of a camera ("visible" or "thermal")."""
         if camera == "visible":
@@ -184,3 +202,5 @@ class EkfOptions:
             )
         if self.max_landmarks_per_camera < 1:
             raise ValueError("max_landmarks_per_camera must be >= 1")
+        if self.pixel_sigma_size_ref_px < 0:
+            raise ValueError("pixel_sigma_size_ref_px must be >= 0 (0: every match the camera's sigma)")

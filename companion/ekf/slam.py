@@ -287,6 +287,7 @@ class VisThermalSlam:
         rows_res: list[np.ndarray] = []
         rows_cam: list[str] = []
         rows_patch: list[bool] = []
+        rows_sigma: list[float] = []
         keep = np.ones(ekf.n_landmarks, bool)
         used_kp: dict[str, np.ndarray] = {}
         tracked_uv: dict[str, list[np.ndarray]] = {c: [] for c in self.camera_names}
@@ -348,6 +349,8 @@ class VisThermalSlam:
                         self._desc[lid] = det.desc[j]
                     tracked_uv[cam_name].append(det.uv[j])
                     rows_patch.append(False)
+                    size = None if det.size_px is None else float(det.size_px[j])
+                    rows_sigma.append(o.match_sigma(cam_name, size))
                 elif k in found:
                     rows_lm.append(int(li))
                     rows_Hp.append(proj.H_pose[vis[k]])
@@ -356,6 +359,7 @@ class VisThermalSlam:
                     rows_cam.append(cam_name)
                     tracked_uv[cam_name].append(found[k])
                     rows_patch.append(True)
+                    rows_sigma.append(o.pixel_sigma(cam_name))
                 else:
                     self._missed(int(li), keep)
                     if keep[li]:
@@ -363,9 +367,8 @@ class VisThermalSlam:
         # --- batch update with every camera's matches (one map, eq. 7) ---------------------------
         if rows_lm:
             lm_rows = np.array(rows_lm)
-            sig = np.array([o.pixel_sigma(c) for c in rows_cam])
             accepted = self._update_matches(
-                lm_rows, np.stack(rows_Hp), np.stack(rows_Hl), np.stack(rows_res), sig
+                lm_rows, np.stack(rows_Hp), np.stack(rows_Hl), np.stack(rows_res), np.array(rows_sigma)
             )
             for li, cam_name, ok, by_patch in zip(lm_rows, rows_cam, accepted, rows_patch):
                 if ok:
@@ -443,7 +446,7 @@ class VisThermalSlam:
     def _update_matches(
         self, lm: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, res: np.ndarray, sig: np.ndarray
     ) -> np.ndarray:
-        """EKF update with the gated matches of every camera (k of them, sig: (k,) their cameras' pixel
+        """EKF update with the gated matches of every camera (k of them, sig: (k,) their pixel
         sigmas); returns (k,) bool, the ones used.
 
         Without ``one_point_ransac`` all of them, in one batch. With it (``ransac``): the low-innovation
