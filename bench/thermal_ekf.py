@@ -103,18 +103,21 @@ PAIRS = (
     ("tir", "dual", "thermal", "dual"),
 )
 
-_WORLD: dict[str, Any] = {}
+_WORLD: dict[float | None, Any] = {}
 
 
-def _world():
-    """The Europa site and cameras, built once per process (~6 s)."""
-    if not _WORLD:
+def _world(specular_fraction: float | None = None):
+    """The Europa site and cameras, built once per process (~6 s) and per ``specular_fraction`` (the visible
+    renderer's specular share, ``Reflectance.specular_fraction``; None: the world's default)."""
+    if specular_fraction not in _WORLD:
         from sim_bridge.europa import EuropaCameras, make_europa
+        from sim_bridge.europa.world import Reflectance
 
         world = make_europa(WORLD_SEED)
-        _WORLD["world"] = world
-        _WORLD["cams"] = EuropaCameras(world)
-    return _WORLD["world"], _WORLD["cams"]
+        if specular_fraction is not None:
+            world = replace(world, reflectance=replace(Reflectance(), specular_fraction=specular_fraction))
+        _WORLD[specular_fraction] = (world, EuropaCameras(world))
+    return _WORLD[specular_fraction]
 
 
 def slope_percent(distance_m: np.ndarray, error_m: np.ndarray) -> float:
@@ -275,15 +278,17 @@ def run_trial(
     detect_scale: float | None = None,
     initial_attitude_deg: float | None = None,
     overrides: tuple[tuple[str, Any], ...] = (),
+    specular_fraction: float | None = None,
 ) -> dict[str, Any]:
     """Render, detect once, run every configuration; returns per-config E and timings. ``overrides``:
-    (field, value) pairs of ``EkfOptions`` set for every configuration (``--option``)."""
+    (field, value) pairs of ``EkfOptions`` set for every configuration (``--option``); ``specular_fraction``:
+    the visible renderer's specular share instead of the world's (``--specular-fraction``)."""
     cv2.setNumThreads(1)
     from sim_bridge.europa.sensors import altimeter_samples
     from sim_bridge.europa.trajectories import paper_trajectories
     from sim_bridge.trajectory import imu_samples
 
-    world, cams = _world()
+    world, cams = _world(specular_fraction)
     tseed = seed * 100_003 + trial
     traj = paper_trajectories(world, tseed)[name]
     rng = np.random.default_rng([tseed, int(name)])
@@ -361,12 +366,14 @@ def run_trial(
     out["detect_scale"] = base.detect_scale
     if overrides:
         out["options"] = dict(overrides)
+    if specular_fraction is not None:
+        out["specular_fraction"] = specular_fraction
     out["sift"] = {c: list(base.sift_settings(c)) for c in ("visible", "thermal")}  # (nfeatures, contrast)
     return out
 
 
 def _run_job(
-    job: tuple[str, int, int, float | None, float | None, tuple[tuple[str, Any], ...]],
+    job: tuple[str, int, int, float | None, float | None, tuple[tuple[str, Any], ...], float | None],
 ) -> dict[str, Any]:
     return run_trial(*job)
 
@@ -573,7 +580,16 @@ def main(argv: list[str] | None = None) -> int:
         help="set an estimator option (an EkfOptions field) for every configuration; repeatable, "
         "e.g. --option altimeter_bias_sigma_m=0.2",
     )
+    p.add_argument(
+        "--specular-fraction",
+        type=float,
+        default=None,
+        help="the visible renderer's specular share of eq. 9 (default the world's, "
+        "sim_bridge.europa.world.Reflectance; 0: no glints, a diagnostic of the visible camera's drift)",
+    )
     a = p.parse_args(argv)
+    if a.specular_fraction is not None and not 0.0 <= a.specular_fraction <= 1.0:
+        p.error(f"--specular-fraction must be within 0 .. 1, got {a.specular_fraction}")
     try:
         overrides = tuple(parse_option(x) for x in a.option)
         bench_options(a.detect_scale, a.initial_attitude_deg, overrides)  # the options' own checks, now
@@ -582,7 +598,7 @@ def main(argv: list[str] | None = None) -> int:
     names = trajectory_names(a.trajectories, a.quick)
     trials = a.trials if a.trials is not None else (3 if a.quick else 30)
     jobs = [
-        (n, k, a.seed, a.detect_scale, a.initial_attitude_deg, overrides)
+        (n, k, a.seed, a.detect_scale, a.initial_attitude_deg, overrides, a.specular_fraction)
         for k in range(trials)
         for n in names
     ]
@@ -718,6 +734,9 @@ def main(argv: list[str] | None = None) -> int:
             ),
             # EkfOptions fields set with --option, as the trials ran (a pooled or old runs log: from its records)
             "option_overrides": options_of_runs(results) if a.from_runs is not None else dict(overrides),
+            # the visible renderer's specular share if not the world's (--specular-fraction; from the records)
+            "specular_fraction": sorted({r["specular_fraction"] for r in results if "specular_fraction" in r})
+            or None,
             "initial_position_sigma_m": BENCH_OPTIONS.initial_position_sigma_m,
             "initial_velocity_sigma_mps": BENCH_OPTIONS.initial_velocity_sigma_mps,
             "E": "OLS slope (with intercept) of position-error norm vs distance travelled, percent",

@@ -200,3 +200,24 @@ def test_write_json_names_the_machine_and_library_versions(tmp_path) -> None:
     assert m["packages"]["numpy"] == m["numpy"]
     assert isinstance(m["cpu_model"], str) and m["cpu_model"]
     assert m["numpy_simd_found"] is None or isinstance(m["numpy_simd_found"], list)
+
+
+def test_specular_fraction_reaches_the_visible_renderer_only() -> None:
+    """--specular-fraction 0: the same site without glints in the visible image, the thermal image unchanged;
+    a share outside 0 .. 1 refused before anything runs."""
+    from bench.thermal_ekf import _world, main
+    from companion.constants import R_BODY_CAM_NADIR
+    from companion.geometry import camera_pose
+
+    world, cams = _world()
+    world0, cams0 = _world(0.0)
+    assert world0.reflectance.specular_fraction == 0.0 and world.reflectance.specular_fraction > 0.0
+    assert np.array_equal(world0.dem.height_m, world.dem.height_m)
+    R_wc, p_c = camera_pose(np.eye(3), np.array([0.0, 0.0, -80.0]), R_BODY_CAM_NADIR)
+    vis, temp = cams.radiance(R_wc, p_c)
+    vis0, temp0 = cams0.radiance(R_wc, p_c)
+    assert np.array_equal(temp, temp0)
+    lobe = vis - vis0  # the specular lobe alone: never negative, and glints somewhere in the view
+    assert float(np.nanmin(lobe)) >= 0.0 and float(np.nanmax(lobe)) > 0.1
+    with pytest.raises(SystemExit):
+        main(["--specular-fraction", "1.5"])
