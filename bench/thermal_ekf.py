@@ -111,11 +111,10 @@ def _world(specular_fraction: float | None = None):
     renderer's specular share, ``Reflectance.specular_fraction``; None: the world's default)."""
     if specular_fraction not in _WORLD:
         from sim_bridge.europa import EuropaCameras, make_europa
-        from sim_bridge.europa.world import Reflectance
 
         world = make_europa(WORLD_SEED)
         if specular_fraction is not None:
-            world = replace(world, reflectance=replace(Reflectance(), specular_fraction=specular_fraction))
+            world = replace(world, reflectance=replace(world.reflectance, specular_fraction=specular_fraction))
         _WORLD[specular_fraction] = (world, EuropaCameras(world))
     return _WORLD[specular_fraction]
 
