@@ -114,7 +114,9 @@ def _world(specular_fraction: float | None = None):
 
         world = make_europa(WORLD_SEED)
         if specular_fraction is not None:
-            world = replace(world, reflectance=replace(world.reflectance, specular_fraction=specular_fraction))
+            world = replace(
+                world, reflectance=replace(world.reflectance, specular_fraction=specular_fraction)
+            )
         _WORLD[specular_fraction] = (world, EuropaCameras(world))
     return _WORLD[specular_fraction]
 
