@@ -107,16 +107,17 @@ _WORLD: dict[float | None, Any] = {}
 
 
 def _world(specular_fraction: float | None = None):
-    """The Europa site and cameras, built once per process (~6 s) and per ``specular_fraction`` (the visible
-    renderer's specular share, ``Reflectance.specular_fraction``; None: the world's default)."""
+    """The Europa site and cameras, built once per process (~6 s); with ``specular_fraction`` (the visible
+    renderer's specular share, ``Reflectance.specular_fraction``) the same site with that share, its own
+    cameras (None: the world's default)."""
     if specular_fraction not in _WORLD:
         from sim_bridge.europa import EuropaCameras, make_europa
 
-        world = make_europa(WORLD_SEED)
-        if specular_fraction is not None:
-            world = replace(
-                world, reflectance=replace(world.reflectance, specular_fraction=specular_fraction)
-            )
+        if specular_fraction is None:
+            world = make_europa(WORLD_SEED)
+        else:
+            site = _world()[0]
+            world = replace(site, reflectance=replace(site.reflectance, specular_fraction=specular_fraction))
         _WORLD[specular_fraction] = (world, EuropaCameras(world))
     return _WORLD[specular_fraction]
 
