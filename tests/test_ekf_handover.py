@@ -5,6 +5,7 @@ delivers before a frame set although they were stamped after it (processing runn
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from companion.constants import GRAVITY_MPS2, R_BODY_CAM_NADIR
@@ -30,6 +31,12 @@ def imu(t_us: int) -> ImuSample:
     return ImuSample(t_us, np.array([0.0, 0.0, -G]), np.zeros(3))
 
 
+def attitude_second(est: VisThermalEkfEstimator, t_end_us: int, yaw: float = 0.0) -> None:
+    """A second of the autopilot's ATTITUDE at 50 Hz, level with heading ``yaw``, up to ``t_end_us``."""
+    for t in range(t_end_us - 1_000_000, t_end_us + 1, 20_000):
+        est.on_attitude(AttitudeSample(t, 0.0, 0.0, yaw))
+
+
 def test_starts_from_the_autopilots_position_and_velocity_once_it_has_one() -> None:
     est = estimator()
     t0 = 10_000_000
@@ -52,6 +59,7 @@ def test_starts_from_the_autopilots_position_and_velocity_once_it_has_one() -> N
 def test_a_configured_start_wins_and_stale_autopilot_positions_are_not_used() -> None:
     est = estimator(np.array([5.0, 6.0, -50.0]))
     t0 = 3_000_000
+    attitude_second(est, t0)
     est.on_local_position(LocalPositionSample(t0 - 2_000_000, np.zeros(3), np.array([3.0, 0.0, 0.0])))
     est.on_detections(t0, {"visible": NONE})
     pose = est.slam.pose(t0)
@@ -62,6 +70,7 @@ def test_a_configured_start_wins_and_stale_autopilot_positions_are_not_used() ->
 def test_samples_stamped_after_a_late_frame_set_wait_for_it() -> None:
     est = estimator()
     t0 = 1_000_000
+    attitude_second(est, t0)
     est.on_local_position(LocalPositionSample(t0, np.array([0.0, 0.0, -60.0]), np.zeros(3)))
     est.on_detections(t0, {"visible": NONE})
     # the next frame set is processed 600 ms late: the daemon hands over the IMU (100 Hz) and altimeter
@@ -186,3 +195,48 @@ def test_a_start_without_a_second_of_attitude_waits_for_it_but_not_longer() -> N
         est.on_detections(t0 + k * 500_000, {"visible": NONE})
     assert est.slam.started and est.counters["waiting_for_attitude"] == 2
     np.testing.assert_allclose(est.slam.pose(t0 + 1_000_000).rpy_rad, [0.0, 0.0, 0.3], atol=1e-9)
+
+
+def test_a_camera_up_before_the_autopilot_streams_waits_for_its_heading() -> None:
+    # a configured start (GPS-denied take-off) whose camera sends frames before the autopilot's first ATTITUDE:
+    # starting then would take the configured heading (0) for good, the cameras cannot correct it
+    est = estimator(np.array([0.0, 0.0, -60.0]))
+    t0 = 5_000_000
+    for k in range(2):
+        est.on_detections(t0 + k * 500_000, {"visible": NONE})
+        assert not est.slam.started and "attitude" in est.warnings
+    # the autopilot streams from 0.7 s on, heading 2 rad: the start waits a second of it, then takes it
+    for t in range(t0 + 700_000, t0 + 2_000_001, 20_000):
+        est.on_attitude(AttitudeSample(t, 0.0, 0.0, 2.0))
+        est.on_imu(imu(t))
+        if (t - t0) % 500_000 == 0:
+            est.on_detections(t, {"visible": NONE})
+            assert est.slam.started == (t - t0 >= 1_700_000)
+    assert est.counters["waiting_for_attitude"] == 4 and "attitude" not in est.warnings
+    assert abs(est.slam.pose(t0 + 2_000_000).rpy_rad[2] - 2.0) < 1e-6
+
+
+def test_with_no_attitude_at_all_it_starts_from_gravity_and_the_configured_heading_after_the_wait(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    intr = CameraIntrinsics(640, 480, 554.3, 554.3, 319.5, 239.5)
+    est = VisThermalEkfEstimator(
+        EkfOptions(mode="visible", attitude_wait_s=2.0),
+        {"visible": intr},
+        {"visible": R_BODY_CAM_NADIR},
+        np.array([0.0, 0.0, -60.0]),
+        gravity_mps2=G,
+        initial_yaw_rad=0.5,
+    )
+    roll = 0.1  # the IMU's gravity, rolled: the accelerometer reads -g along body "up" rolled by 0.1 rad
+    f = -G * np.array([0.0, np.sin(roll), np.cos(roll)])
+    t0 = 5_000_000
+    for k in range(6):
+        stamp = t0 + k * 500_000
+        for t in range(stamp - 500_000, stamp + 1, 10_000):
+            est.on_imu(ImuSample(t, f, np.zeros(3)))
+        est.on_detections(stamp, {"visible": NONE})
+        assert est.slam.started == (k >= 4)  # 2 s after the first frame set
+    assert est.counters["waiting_for_attitude"] == 4
+    np.testing.assert_allclose(est.slam.pose(t0 + 2_500_000).rpy_rad, [roll, 0.0, 0.5], atol=1e-3)
+    assert "no ATTITUDE from the autopilot 2 s after the first frames" in caplog.text

@@ -130,8 +130,10 @@ class VisThermalEkfEstimator:
     - attitude: ``initial_rpy``, or if None the autopilot's ATTITUDE samples of the last
       ``options.initial_attitude_window_s`` averaged, each carried to the frame's stamp by the IMU's gyro
       (``start_attitude``; with less than that window of samples yet, the start waits for them, at most that
-      long after the first frame set, counted in ``waiting_for_attitude``), else gravity from the IMU with yaw
-      ``initial_yaw_rad``.
+      long after the first frame set or the first sample, whichever came later, counted in
+      ``waiting_for_attitude``); with no sample at all (the camera up before the autopilot streams) the start
+      waits up to ``options.attitude_wait_s`` after the first frame set (``warnings`` says so), then takes
+      gravity from the IMU with yaw ``initial_yaw_rad``.
     A LOCAL_POSITION_NED sample older than ``max_local_position_age_s`` at the frame is not used.
     """
 
@@ -197,7 +199,7 @@ class VisThermalEkfEstimator:
             "reinit": 0,
             "missing_camera": 0,
             "waiting_for_position": 0,
-            "waiting_for_attitude": 0,  # frame sets before a second of ATTITUDE samples to start from
+            "waiting_for_attitude": 0,  # frame sets before the ATTITUDE samples to start from (see the class doc)
             # from the filter's counters, refreshed at each frame set
             "imu_samples": 0,
             "late_imu": 0,
@@ -358,8 +360,8 @@ class VisThermalEkfEstimator:
     def _start(self, stamp_us: int) -> str | None:
         """Start the filter at ``stamp_us``; None if started, else the counter saying why not: the initial
         position unknown (``waiting_for_position``), or less than ``initial_attitude_window_s`` of ATTITUDE
-        samples to average yet (``waiting_for_attitude``: a replay whose record begins with the first frames;
-        at most that long after the first frame set)."""
+        samples to average yet (``waiting_for_attitude``: a replay whose record begins with the first frames,
+        at most that long after the first frame set or sample; none at all, at most ``attitude_wait_s``)."""
         if self._first_frame_us is None:
             self._first_frame_us = stamp_us
         lp = self._local
@@ -373,13 +375,25 @@ class VisThermalEkfEstimator:
         else:
             return "waiting_for_position"
         window_us = self.options.initial_attitude_window_s * 1e6
-        if (
+        if self._rpy0 is None and not self._attitudes:
+            # the camera came up before the autopilot streams: a start now would take the configured heading,
+            # which the cameras cannot correct, while the autopilot's may be seconds away
+            if stamp_us - self._first_frame_us < self.options.attitude_wait_s * 1e6:
+                self.warnings["attitude"] = "NO ATTITUDE yet: not started"
+                return "waiting_for_attitude"
+            log.warning(
+                "no ATTITUDE from the autopilot %.0f s after the first frames: starting from the IMU's gravity "
+                "and the configured heading, %.1f deg, which the cameras cannot correct",
+                self.options.attitude_wait_s,
+                math.degrees(self._yaw0),
+            )
+        elif (
             self._rpy0 is None
-            and self._attitudes
             and self._attitudes[-1][0] - self._attitudes[0][0] < window_us
-            and stamp_us - self._first_frame_us < window_us
+            and stamp_us - max(self._first_frame_us, self._attitudes[0][0]) < window_us
         ):
             return "waiting_for_attitude"
+        self.warnings.pop("attitude", None)
         if self._v0 is not None:
             v0 = self._v0
         else:
