@@ -44,11 +44,12 @@ def test_starts_from_the_autopilots_position_and_velocity_once_it_has_one() -> N
         est.on_attitude(AttitudeSample(t, 0.01, -0.02, 0.7))
     assert est.on_detections(t0, {"visible": NONE}) is None
     assert est.counters["waiting_for_position"] == 1 and not est.slam.started
+    assert est.warnings["position"] == "NO LOCAL_POSITION_NED yet: not started"  # on the status line
     v = np.array([1.2, -0.4, 0.1])
     est.on_local_position(LocalPositionSample(t0 + 400_000, np.array([-100.0, -30.0, -128.0]), v))
     t1 = t0 + 500_000
     est.on_detections(t1, {"visible": NONE})
-    assert est.slam.started
+    assert est.slam.started and "position" not in est.warnings
     pose = est.slam.pose(t1)
     # the autopilot's position carried forward to the frame's stamp with its velocity (0.1 s)
     np.testing.assert_allclose(pose.p_world, [-99.88, -30.04, -127.99], atol=1e-6)

@@ -373,7 +373,9 @@ class VisThermalEkfEstimator:
         elif lp is not None:
             p0 = np.asarray(lp.p_ned_m, float) + np.asarray(lp.v_ned_mps, float) * dt_s
         else:
+            self.warnings["position"] = "NO LOCAL_POSITION_NED yet: not started"
             return "waiting_for_position"
+        self.warnings.pop("position", None)
         window_us = self.options.initial_attitude_window_s * 1e6
         if self._rpy0 is None and not self._attitudes:
             # the camera came up before the autopilot streams: a start now would take the configured heading,
