@@ -50,7 +50,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import json  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
-from dataclasses import fields, replace  # noqa: E402
+from dataclasses import dataclass, fields, replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -273,7 +273,30 @@ def runs_seeds(results: list[dict[str, Any]]) -> int | list[int] | None:
     return ordered[0] if len(ordered) == 1 else ordered
 
 
-def run_trial(
+@dataclass
+class Flight:
+    """One trial's simulated inputs, rendered and detected once (``render_flight``).
+
+    imu / altimeter: the sensor samples; frames: (stamp_us, {"visible": Detections, "thermal": Detections}) at
+    ``CAMERA_HZ``; states: the true state at each frame; truth (F, 3) its position; distance_m (F,) the distance
+    flown by then; rng: the trial's generator after the sensors' draws (the start's draw comes next); base: the
+    trial's ``EkfOptions``; t_render / t_sift: seconds spent rendering / in SIFT."""
+
+    traj: Any
+    states: list[Any]
+    imu: list[ImuSample]
+    altimeter: list[AltimeterSample]
+    frames: list[tuple[int, dict[str, Any]]]
+    truth: np.ndarray
+    distance_m: np.ndarray
+    rng: np.random.Generator
+    base: EkfOptions
+    intrinsics: Any
+    t_render: float
+    t_sift: float
+
+
+def render_flight(
     name: str,
     trial: int,
     seed: int,
@@ -281,10 +304,8 @@ def run_trial(
     initial_attitude_deg: float | None = None,
     overrides: tuple[tuple[str, Any], ...] = (),
     specular_fraction: float | None = None,
-) -> dict[str, Any]:
-    """Render, detect once, run every configuration; returns per-config E and timings. ``overrides``:
-    (field, value) pairs of ``EkfOptions`` set for every configuration (``--option``); ``specular_fraction``:
-    the visible renderer's specular share instead of the world's (``--specular-fraction``)."""
+) -> Flight:
+    """The trial's trajectory, IMU, altimeter and frame pairs, SIFT run once on each image (see ``run_trial``)."""
     cv2.setNumThreads(1)
     from sim_bridge.europa.sensors import altimeter_samples
     from sim_bridge.europa.trajectories import paper_trajectories
@@ -314,6 +335,44 @@ def run_trial(
         t_sift += time.perf_counter() - t1
         t_render += t1 - t0
         frames.append((int(round(st.t_s * 1e6)), d))
+    # distance travelled at each frame time
+    tt = np.linspace(traj.t0_s, traj.t1_s, 3601)
+    pp = np.stack([s.p_world for s in traj.states(tt)])
+    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pp, axis=0), axis=1))])
+    dist = np.interp(t_frames, tt, cum)
+    truth = np.stack([s.p_world for s in states])
+    return Flight(
+        traj,
+        list(states),
+        imu_list,
+        alt_list,
+        frames,
+        truth,
+        dist,
+        rng,
+        base,
+        cams.intrinsics,
+        t_render,
+        t_sift,
+    )
+
+
+def run_trial(
+    name: str,
+    trial: int,
+    seed: int,
+    detect_scale: float | None = None,
+    initial_attitude_deg: float | None = None,
+    overrides: tuple[tuple[str, Any], ...] = (),
+    specular_fraction: float | None = None,
+) -> dict[str, Any]:
+    """Render, detect once, run every configuration; returns per-config E and timings. ``overrides``:
+    (field, value) pairs of ``EkfOptions`` set for every configuration (``--option``); ``specular_fraction``:
+    the visible renderer's specular share instead of the world's (``--specular-fraction``)."""
+    fl = render_flight(name, trial, seed, detect_scale, initial_attitude_deg, overrides, specular_fraction)
+    tseed = seed * 100_003 + trial
+    rng, base, states, frames, truth, dist = fl.rng, fl.base, fl.states, fl.frames, fl.truth, fl.distance_m
+    imu_list, alt_list, t_render, t_sift = fl.imu, fl.altimeter, fl.t_render, fl.t_sift
     # initial state: truth perturbed by a draw from the filter's prior (same for every configuration)
     st0 = states[0]
     p0 = st0.p_world + rng.normal(0, base.initial_position_sigma_m, 3)
@@ -321,13 +380,7 @@ def run_trial(
     rpy0 = rpy_from_rot(st0.R_world_body) + rng.normal(0, 1, 3) * np.array(
         [base.initial_tilt_sigma_rad, base.initial_tilt_sigma_rad, base.initial_yaw_sigma_rad]
     )
-    # distance travelled at each frame time
-    tt = np.linspace(traj.t0_s, traj.t1_s, 3601)
-    pp = np.stack([s.p_world for s in traj.states(tt)])
-    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pp, axis=0), axis=1))])
-    dist = np.interp(t_frames, tt, cum)
-    truth = np.stack([s.p_world for s in states])
-    intr = cams.intrinsics
+    intr = fl.intrinsics
     out: dict[str, Any] = {"name": name, "trial": trial, "seed": seed, "distance_m": float(dist[-1])}
     for cfg, (mode, sampling) in CONFIGS.items():
         opts = replace(base, seed=tseed, mode=mode, sampling=sampling)
