@@ -127,7 +127,7 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         "initial_yaw_sigma_rad": 0.1,
         "detect_scale": 0.75,
         "initial_attitude_window_s": 0.5,
-        "attitude_wait_s": 3.0,
+        "start_wait_s": 3.0,
         "init_rho_rel_sigma": 0.7,
     }
     assert set(changed) | {"pair_tolerance_ms"} == set(EkfConfig.model_fields)  # a new key must join here

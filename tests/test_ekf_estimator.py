@@ -163,7 +163,13 @@ def test_frames_without_imu_are_counted_and_reported(flight):
     blind = _estimator(flight, "visible")
     blind.on_frames({"visible": flight["frames"][0][1]["visible"]})
     blind.close()
-    assert blind.warnings == {"imu": "NO IMU", "altimeter": "NO ALTIMETER"}
+    # and a filter that has never had an IMU sample waits for one (EkfOptions.start_wait_s)
+    assert blind.warnings == {
+        "imu": "NO IMU",
+        "altimeter": "NO ALTIMETER",
+        "start": "not started: waiting for IMU",
+    }
+    assert not blind.slam.started and blind.counters["waiting_for_imu"] == 1
     assert blind.counters["frames_without_imu"] == blind.counters["frames_without_altimeter"] == 1
 
 
@@ -211,6 +217,7 @@ def test_configuration_errors_and_initial_attitude(flight):
     rpy = rpy_from_rot(st0.R_world_body)
     est.on_attitude(AttitudeSample(0, *rpy))
     t, fs = flight["frames"][0]
+    _Feeder(est, flight).until(t)  # the IMU up to the frame (a start waits for one)
     e = est.on_frames({"thermal": fs["thermal"]})
     assert e.status is EstimateStatus.INITIALISING and not e.is_sendable()
     np.testing.assert_allclose(e.rpy_rad, rpy, atol=1e-9)

@@ -32,24 +32,29 @@ def imu(t_us: int) -> ImuSample:
 
 
 def attitude_second(est: VisThermalEkfEstimator, t_end_us: int, yaw: float = 0.0) -> None:
-    """A second of the autopilot's ATTITUDE at 50 Hz, level with heading ``yaw``, up to ``t_end_us``."""
+    """A second of the autopilot's ATTITUDE at 50 Hz, level with heading ``yaw``, up to ``t_end_us``, and its IMU
+    at ``t_end_us`` (a start waits for both)."""
     for t in range(t_end_us - 1_000_000, t_end_us + 1, 20_000):
         est.on_attitude(AttitudeSample(t, 0.0, 0.0, yaw))
+    est.on_imu(imu(t_end_us))
 
 
 def test_starts_from_the_autopilots_position_and_velocity_once_it_has_one() -> None:
     est = estimator()
     t0 = 10_000_000
-    for t in range(t0 - 1_020_000, t0, 20_000):  # the autopilot's attitude, streaming before the frames
+    for t in range(
+        t0 - 1_020_000, t0, 20_000
+    ):  # the autopilot's attitude and IMU, streaming before the frames
         est.on_attitude(AttitudeSample(t, 0.01, -0.02, 0.7))
+        est.on_imu(imu(t))
     assert est.on_detections(t0, {"visible": NONE}) is None
     assert est.counters["waiting_for_position"] == 1 and not est.slam.started
-    assert est.warnings["position"] == "NO LOCAL_POSITION_NED yet: not started"  # on the status line
+    assert est.warnings["start"] == "not started: waiting for LOCAL_POSITION_NED"  # on the status line
     v = np.array([1.2, -0.4, 0.1])
     est.on_local_position(LocalPositionSample(t0 + 400_000, np.array([-100.0, -30.0, -128.0]), v))
     t1 = t0 + 500_000
     est.on_detections(t1, {"visible": NONE})
-    assert est.slam.started and "position" not in est.warnings
+    assert est.slam.started and "start" not in est.warnings
     pose = est.slam.pose(t1)
     # the autopilot's position carried forward to the frame's stamp with its velocity (0.1 s)
     np.testing.assert_allclose(pose.p_world, [-99.88, -30.04, -127.99], atol=1e-6)
@@ -84,10 +89,10 @@ def test_samples_stamped_after_a_late_frame_set_wait_for_it() -> None:
     assert est.slam.t_us == t0, "samples went to the filter before the frame set older than them"
     est.on_detections(t1, {"visible": NONE})
     assert est.slam.t_us == t1 and est.counters["stale_frames"] == 0
-    assert est.counters["imu_samples"] == 50 and est.counters["late_imu"] == 0
+    assert est.counters["imu_samples"] == 51 and est.counters["late_imu"] == 0  # and the one before the start
     # the rest are given with the next frame set (those up to its stamp)
     est.on_detections(t1 + 500_000, {"visible": NONE})
-    assert est.counters["imu_samples"] == 100 and est.slam.t_us == t1 + 500_000
+    assert est.counters["imu_samples"] == 101 and est.slam.t_us == t1 + 500_000
 
 
 # -- the start's attitude: the autopilot's ATTITUDE samples averaged, carried to the frame by the gyro ---------
@@ -179,12 +184,14 @@ def test_a_start_without_a_second_of_attitude_waits_for_it_but_not_longer() -> N
     t0 = 20_000_000
     est.on_local_position(LocalPositionSample(t0, np.array([0.0, 0.0, -60.0]), np.zeros(3)))
     est.on_attitude(AttitudeSample(t0, 0.0, 0.0, 0.3))
+    est.on_imu(imu(t0))
     sent = t0  # the newest ATTITUDE stamp given
     for k in range(3):
         stamp = t0 + k * 500_000
         while sent < stamp:  # 50 Hz up to the frame set's stamp
             sent += 20_000
             est.on_attitude(AttitudeSample(sent, 0.0, 0.0, 0.3))
+            est.on_imu(imu(sent))
         est.on_detections(stamp, {"visible": NONE})
         assert est.slam.started == (k == 2)
     assert est.counters["waiting_for_attitude"] == 2 and est.counters["waiting_for_position"] == 0
@@ -192,6 +199,7 @@ def test_a_start_without_a_second_of_attitude_waits_for_it_but_not_longer() -> N
     est = estimator()
     est.on_local_position(LocalPositionSample(t0, np.array([0.0, 0.0, -60.0]), np.zeros(3)))
     est.on_attitude(AttitudeSample(t0, 0.0, 0.0, 0.3))
+    est.on_imu(imu(t0))
     for k in range(3):
         est.on_detections(t0 + k * 500_000, {"visible": NONE})
     assert est.slam.started and est.counters["waiting_for_attitude"] == 2
@@ -205,7 +213,7 @@ def test_a_camera_up_before_the_autopilot_streams_waits_for_its_heading() -> Non
     t0 = 5_000_000
     for k in range(2):
         est.on_detections(t0 + k * 500_000, {"visible": NONE})
-        assert not est.slam.started and "attitude" in est.warnings
+        assert not est.slam.started and est.warnings["start"] == "not started: waiting for IMU and ATTITUDE"
     # the autopilot streams from 0.7 s on, heading 2 rad: the start waits a second of it, then takes it
     for t in range(t0 + 700_000, t0 + 2_000_001, 20_000):
         est.on_attitude(AttitudeSample(t, 0.0, 0.0, 2.0))
@@ -213,7 +221,8 @@ def test_a_camera_up_before_the_autopilot_streams_waits_for_its_heading() -> Non
         if (t - t0) % 500_000 == 0:
             est.on_detections(t, {"visible": NONE})
             assert est.slam.started == (t - t0 >= 1_700_000)
-    assert est.counters["waiting_for_attitude"] == 4 and "attitude" not in est.warnings
+    assert est.counters["waiting_for_imu"] == 2 and est.counters["waiting_for_attitude"] == 2
+    assert "start" not in est.warnings
     assert abs(est.slam.pose(t0 + 2_000_000).rpy_rad[2] - 2.0) < 1e-6
 
 
@@ -222,7 +231,7 @@ def test_with_no_attitude_at_all_it_starts_from_gravity_and_the_configured_headi
 ) -> None:
     intr = CameraIntrinsics(640, 480, 554.3, 554.3, 319.5, 239.5)
     est = VisThermalEkfEstimator(
-        EkfOptions(mode="visible", attitude_wait_s=2.0),
+        EkfOptions(mode="visible", start_wait_s=2.0),
         {"visible": intr},
         {"visible": R_BODY_CAM_NADIR},
         np.array([0.0, 0.0, -60.0]),
@@ -241,3 +250,37 @@ def test_with_no_attitude_at_all_it_starts_from_gravity_and_the_configured_headi
     assert est.counters["waiting_for_attitude"] == 4
     np.testing.assert_allclose(est.slam.pose(t0 + 2_500_000).rpy_rad, [roll, 0.0, 0.5], atol=1e-3)
     assert "no ATTITUDE from the autopilot 2 s after the first frames" in caplog.text
+
+
+def test_a_start_waits_for_the_imu_that_ardupilot_streams_only_when_asked(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # ATTITUDE streams at once, the IMU (ArduPilot's RAW_IMU) only once the companion has asked for it: a start
+    # without it would propagate the first seconds as if the vehicle hovered
+    def autopilot_without_imu(start_wait_s: float) -> VisThermalEkfEstimator:
+        est = VisThermalEkfEstimator(
+            EkfOptions(mode="visible", start_wait_s=start_wait_s),
+            {"visible": CameraIntrinsics(640, 480, 554.3, 554.3, 319.5, 239.5)},
+            {"visible": R_BODY_CAM_NADIR},
+            np.array([0.0, 0.0, -60.0]),
+            gravity_mps2=G,
+        )
+        for t in range(2_000_000, 5_000_001, 20_000):
+            est.on_attitude(AttitudeSample(t, 0.0, 0.0, 0.3))
+        return est
+
+    t0 = 5_000_000
+    est = autopilot_without_imu(3.0)
+    for k in range(2):
+        est.on_detections(t0 + k * 500_000, {"visible": NONE})
+        assert not est.slam.started and est.warnings["start"] == "not started: waiting for IMU"
+    for t in range(t0 + 1_010_000, t0 + 1_500_001, 10_000):  # the IMU comes, 100 Hz
+        est.on_imu(imu(t))
+    est.on_detections(t0 + 1_500_000, {"visible": NONE})
+    assert est.slam.started and est.counters["waiting_for_imu"] == 2 and "start" not in est.warnings
+    # never an IMU: the start goes ahead start_wait_s after the first frame set, and the log says how
+    est = autopilot_without_imu(1.0)
+    for k in range(3):
+        est.on_detections(t0 + k * 500_000, {"visible": NONE})
+        assert est.slam.started == (k == 2)
+    assert "no IMU from the autopilot 1 s after the first frames" in caplog.text

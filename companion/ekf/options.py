@@ -58,10 +58,11 @@ class EkfOptions:
     # s, the daemon's start from the autopilot: its ATTITUDE samples this close to the first frame set averaged,
     # each carried there by the IMU's gyro (``vis_thermal_ekf.start_attitude``); 0 = the nearest sample alone
     initial_attitude_window_s: float = 1.0
-    # s, a start from the autopilot's attitude with no ATTITUDE sample yet (the camera up before the autopilot
-    # streams) waits this long after the first frame set for one; then it starts from the IMU's gravity and the
-    # configured heading (``initial_yaw_rad``), which the cameras cannot correct
-    attitude_wait_s: float = 10.0
+    # s, a start with no IMU sample yet, or (from the autopilot's attitude) no ATTITUDE sample yet, waits this long
+    # after the first frame set for them (the camera up before the autopilot streams); then it starts without:
+    # from the IMU's gravity and the configured heading (``initial_yaw_rad``), which the cameras cannot correct,
+    # or propagating as if the vehicle hovered until the IMU comes
+    start_wait_s: float = 10.0
     # --- visual measurements ---
     pixel_sigma_px: float = 1.0  # px, SIFT keypoint position noise (per axis): the visible camera's
     # and the thermal camera's (0 = ``pixel_sigma_px``); see ``pixel_sigma``
@@ -206,7 +207,7 @@ class EkfOptions:
             )
         if self.max_landmarks_per_camera < 1:
             raise ValueError("max_landmarks_per_camera must be >= 1")
-        if self.attitude_wait_s < 0:
-            raise ValueError("attitude_wait_s must be >= 0")
+        if self.start_wait_s < 0:
+            raise ValueError("start_wait_s must be >= 0")
         if self.pixel_sigma_size_ref_px < 0:
             raise ValueError("pixel_sigma_size_ref_px must be >= 0 (0: every match the camera's sigma)")

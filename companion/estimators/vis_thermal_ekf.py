@@ -132,8 +132,10 @@ class VisThermalEkfEstimator:
       (``start_attitude``; with less than that window of samples yet, the start waits for them, at most that
       long after the first frame set or the first sample, whichever came later, counted in
       ``waiting_for_attitude``); with no sample at all (the camera up before the autopilot streams) the start
-      waits up to ``options.attitude_wait_s`` after the first frame set (``warnings`` says so), then takes
-      gravity from the IMU with yaw ``initial_yaw_rad``.
+      waits up to ``options.start_wait_s`` after the first frame set, then takes gravity from the IMU with yaw
+      ``initial_yaw_rad``.
+    The start waits likewise for the first IMU sample (``waiting_for_imu``), up to ``options.start_wait_s``:
+    without it the filter would propagate as if the vehicle hovered. ``warnings`` says what a start waits for.
     A LOCAL_POSITION_NED sample older than ``max_local_position_age_s`` at the frame is not used.
     """
 
@@ -200,6 +202,7 @@ class VisThermalEkfEstimator:
             "missing_camera": 0,
             "waiting_for_position": 0,
             "waiting_for_attitude": 0,  # frame sets before the ATTITUDE samples to start from (see the class doc)
+            "waiting_for_imu": 0,  # frame sets before the first IMU sample (see the class doc)
             # from the filter's counters, refreshed at each frame set
             "imu_samples": 0,
             "late_imu": 0,
@@ -361,7 +364,8 @@ class VisThermalEkfEstimator:
         """Start the filter at ``stamp_us``; None if started, else the counter saying why not: the initial
         position unknown (``waiting_for_position``), or less than ``initial_attitude_window_s`` of ATTITUDE
         samples to average yet (``waiting_for_attitude``: a replay whose record begins with the first frames,
-        at most that long after the first frame set or sample; none at all, at most ``attitude_wait_s``)."""
+        at most that long after the first frame set or sample; none at all, at most ``start_wait_s``), or no
+        IMU sample yet (``waiting_for_imu``, at most ``start_wait_s``)."""
         if self._first_frame_us is None:
             self._first_frame_us = stamp_us
         lp = self._local
@@ -373,29 +377,45 @@ class VisThermalEkfEstimator:
         elif lp is not None:
             p0 = np.asarray(lp.p_ned_m, float) + np.asarray(lp.v_ned_mps, float) * dt_s
         else:
-            self.warnings["position"] = "NO LOCAL_POSITION_NED yet: not started"
+            self.warnings["start"] = "not started: waiting for LOCAL_POSITION_NED"
             return "waiting_for_position"
-        self.warnings.pop("position", None)
-        window_us = self.options.initial_attitude_window_s * 1e6
-        if self._rpy0 is None and not self._attitudes:
-            # the camera came up before the autopilot streams: a start now would take the configured heading,
-            # which the cameras cannot correct, while the autopilot's may be seconds away
-            if stamp_us - self._first_frame_us < self.options.attitude_wait_s * 1e6:
-                self.warnings["attitude"] = "NO ATTITUDE yet: not started"
-                return "waiting_for_attitude"
-            log.warning(
-                "no ATTITUDE from the autopilot %.0f s after the first frames: starting from the IMU's gravity "
-                "and the configured heading, %.1f deg, which the cameras cannot correct",
-                self.options.attitude_wait_s,
-                math.degrees(self._yaw0),
+        # the camera up before the autopilot streams (or before it streams the IMU: ArduPilot's RAW_IMU comes
+        # when asked, ``deploy/README.md`` section 5): a start now would take the configured heading, which
+        # the cameras cannot correct, or propagate the first seconds as if the vehicle hovered
+        missing = [
+            name
+            for name, absent in (
+                ("IMU", self._last_imu_us is None),
+                ("ATTITUDE", self._rpy0 is None and not self._attitudes),
             )
-        elif (
+            if absent
+        ]
+        if missing:
+            if stamp_us - self._first_frame_us < self.options.start_wait_s * 1e6:
+                self.warnings["start"] = f"not started: waiting for {' and '.join(missing)}"
+                return "waiting_for_imu" if missing[0] == "IMU" else "waiting_for_attitude"
+            yaw_deg = math.degrees(self._yaw0)
+            how = (
+                f"from the IMU's gravity and the configured heading, {yaw_deg:.1f} deg, which the cameras cannot correct"
+                if "ATTITUDE" in missing
+                else "propagating as if the vehicle hovered until the IMU comes"
+            )
+            log.warning(
+                "no %s from the autopilot %.0f s after the first frames: starting without, %s",
+                " or ".join(missing),
+                self.options.start_wait_s,
+                how,
+            )
+        window_us = self.options.initial_attitude_window_s * 1e6
+        if (
             self._rpy0 is None
+            and self._attitudes
             and self._attitudes[-1][0] - self._attitudes[0][0] < window_us
             and stamp_us - max(self._first_frame_us, self._attitudes[0][0]) < window_us
         ):
+            self.warnings["start"] = f"not started: waiting for {window_us * 1e-6:g} s of ATTITUDE"
             return "waiting_for_attitude"
-        self.warnings.pop("attitude", None)
+        self.warnings.pop("start", None)
         if self._v0 is not None:
             v0 = self._v0
         else:
