@@ -153,6 +153,29 @@ def test_ekf_patch_summary_pairs_each_variant_with_sift_only() -> None:
         assert s[m]["patch_both"]["mean_error_m_diff"] == pytest.approx(0.05, abs=0.03)
 
 
+def test_ekf_start_summary_pairs_each_variant_with_the_reference() -> None:
+    """Known runs: each variant's mean, worst flight and paired difference to the reference (mean, sem)."""
+    from scipy.stats import sem
+
+    from bench.ekf_start import VARIANTS, summarise
+
+    rng = np.random.default_rng(1)
+    runs = [
+        {v: {"mean_error_m": 0.5 + 0.1 * i + k + 0.01 * rng.standard_normal(), "E_percent": 0.1, "estimates": 180 - k}
+         for k, v in enumerate(VARIANTS)}
+        for i in range(5)
+    ]  # fmt: skip
+    s = summarise(runs)
+    assert s["reference"]["diff_m"] == 0.0
+    d = np.array([r["imu_late_wait"]["mean_error_m"] - r["reference"]["mean_error_m"] for r in runs])
+    assert s["imu_late_wait"]["diff_m"] == pytest.approx(d.mean()) == pytest.approx(2.0, abs=0.03)
+    assert s["imu_late_wait"]["diff_sem_m"] == pytest.approx(sem(d))
+    assert s["imu_late_at_once"]["worst_mean_error_m"] == max(
+        r["imu_late_at_once"]["mean_error_m"] for r in runs
+    )
+    assert s["attitude_late_wait"]["estimates"] == 176
+
+
 def test_covariance_consistency_scores_a_right_and_an_over_confident_covariance() -> None:
     from companion.metrics import CHI2_2DOF_95, covariance_consistency
 
