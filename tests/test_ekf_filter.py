@@ -35,11 +35,14 @@ def _fly(
     cam_hz: float = 2.0,
     imu_delay_s: float = 0.0,
     outlier_px: float = 0.0,
+    imu_gap_s: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, VisThermalSlam]:
     """Run the SLAM over the synthetic scene; returns per-frame NEES (F, 2) for (position, attitude), the
     per-frame estimated positions (F, 3) and the SLAM. The initial error is drawn from the filter's prior.
     With ``outlier_px`` a seventh of the keypoints of each frame (a different seventh each frame) is that
-    far off its point, in a random direction (a mismatch, or a keypoint on a glint or a shadow's edge)."""
+    far off its point, in a random direction (a mismatch, or a keypoint on a glint or a shadow's edge). With
+    ``imu_gap_s`` = (t0, t1) the IMU is silent from t0 to t1 s, and its last sample before the gap reads a pitch
+    rate of 0.05 rad/s more (a wobbling vehicle's rate of the moment, which holding it turns into a tilt)."""
     traj = straight_flight(duration_s=duration_s, speed_mps=speed_mps)
     imu = imu_samples(traj, 100.0, imu_noise, seed)
     slam = VisThermalSlam(opts, {"visible": camera_model()}, G)
@@ -53,7 +56,11 @@ def _fly(
     t_frames = np.arange(0.5, traj.t1_s, 1.0 / cam_hz)
     t_alt = np.arange(0.05, traj.t1_s, 0.1)
     delay_us = int(imu_delay_s * 1e6)
-    events = [(int(t) + delay_us, 0, i) for i, t in enumerate(imu.t_us)]
+    keep = np.ones(len(imu.t_us), bool)
+    if imu_gap_s is not None:
+        keep = (imu.t_us < imu_gap_s[0] * 1e6) | (imu.t_us >= imu_gap_s[1] * 1e6)
+        imu.gyro_rps[np.flatnonzero(imu.t_us < imu_gap_s[0] * 1e6)[-1], 1] += 0.05
+    events = [(int(t) + delay_us, 0, i) for i, t in enumerate(imu.t_us) if keep[i]]
     events += [(int(t * 1e6), 1, i) for i, t in enumerate(t_alt)]
     events += [(int(t * 1e6), 2, i) for i, t in enumerate(t_frames)]
     events.sort()
@@ -161,6 +168,24 @@ def test_imu_arriving_after_the_frame_changes_little():
     assert np.mean(late[0][:, 0]) < 2 * _bounds(3, 1)[1]
     assert late[2].counters.late_imu > 0  # samples older than the frame that was processed
     assert on_time[2].counters.stale_frames == 0
+
+
+def test_an_imu_that_stops_for_two_seconds_is_stood_in_for_by_the_motion_model():
+    """IMU silent from 6 to 8.5 s: the filter propagates a constant velocity with the motion model's noise
+    (EkfOptions.imu_hold_max_s), keeps matching and stays near the flight with the IMU; holding the last
+    sample instead (the hold never expiring) turns its rate into a tilt that leaves the landmarks' gates."""
+    opts = EkfOptions(mode="visible", seed=1)
+    nees, est, slam = _fly(3, opts, 2.0, duration_s=14.0)
+    traj = straight_flight(duration_s=14.0, speed_mps=2.0)
+    truth = np.array([traj.state_at(t).p_world for t in np.arange(0.5, traj.t1_s, 0.5)])
+    ref = np.linalg.norm(est - truth, axis=1)
+    nees_g, est_g, slam_g = _fly(3, opts, 2.0, duration_s=14.0, imu_gap_s=(6.0, 8.5))
+    err = np.linalg.norm(est_g - truth, axis=1)
+    assert slam.counters.steps_without_imu == 0 and slam_g.counters.steps_without_imu >= 5
+    assert np.max(err) < max(0.3, 3 * np.max(ref)), (err, ref)
+    assert np.mean(nees_g[:, 0]) < 2 * _bounds(3, 1)[1]
+    held = _fly(3, replace(opts, imu_hold_max_s=1e9), 2.0, duration_s=14.0, imu_gap_s=(6.0, 8.5))
+    assert np.max(np.linalg.norm(held[1] - truth, axis=1)) > 2 * np.max(err)
 
 
 def _noiseless_frames(opts: EkfOptions, t_end_s: float, size_px: float | None = None):

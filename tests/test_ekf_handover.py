@@ -256,7 +256,7 @@ def test_a_start_waits_for_the_imu_that_ardupilot_streams_only_when_asked(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     # ATTITUDE streams at once, the IMU (ArduPilot's RAW_IMU) only once the companion has asked for it: a start
-    # without it would propagate the first seconds as if the vehicle hovered
+    # without it would propagate the first seconds on the motion model alone
     def autopilot_without_imu(start_wait_s: float) -> VisThermalEkfEstimator:
         est = VisThermalEkfEstimator(
             EkfOptions(mode="visible", start_wait_s=start_wait_s),

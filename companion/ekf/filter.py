@@ -119,7 +119,12 @@ class InverseDepthEkf:
         self.P = P
         self._Phi = np.eye(self.vdim)
         self._phi_pending = False
-        self._dt_cache: tuple[float, np.ndarray, np.ndarray] = (float("nan"), P, P)  # see _dt_terms
+        # see _dt_terms: ((dt, noise_density), F_dt, Q) of the last step
+        self._dt_cache: tuple[tuple[float, tuple[float, float] | None], np.ndarray, np.ndarray] = (
+            (float("nan"), None),
+            P,
+            P,
+        )
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -141,8 +146,16 @@ class InverseDepthEkf:
         return self.P
 
     # ------------------------------------------------------------------ propagation (eqs. 1-4)
-    def propagate(self, f_body: np.ndarray, omega_body: np.ndarray, dt: float) -> None:
-        """Advance by ``dt`` seconds with IMU specific force f_body (3,) m/s^2 and rate omega_body (3,) rad/s."""
+    def propagate(
+        self,
+        f_body: np.ndarray,
+        omega_body: np.ndarray,
+        dt: float,
+        noise_density: tuple[float, float] | None = None,
+    ) -> None:
+        """Advance by ``dt`` seconds with IMU specific force f_body (3,) m/s^2 and rate omega_body (3,) rad/s.
+        noise_density: (accel, gyro) white-noise densities in place of the options' IMU ones (a motion model
+        standing in for a missing IMU)."""
         if dt <= 0.0:
             return
         o = self.opts
@@ -158,7 +171,7 @@ class InverseDepthEkf:
         # error-state transition (Solà 2017, eq. 269 with the rate as a state); the entries that depend on
         # dt only come from a per-dt template (the IMU loop runs this 100-200 times a second: np.eye and
         # block assembly dominated it), the attitude-dependent blocks are written in place
-        F_dt, Q = self._dt_terms(dt)
+        F_dt, Q = self._dt_terms(dt, noise_density)
         F = F_dt.copy()
         Rax = R @ skew(a_b)
         F[IDX_R, IDX_TH] = (-0.5 * dt * dt) * Rax
@@ -180,14 +193,19 @@ class InverseDepthEkf:
             self._Phi = F @ self._Phi
             self._phi_pending = True
 
-    def _dt_terms(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    def _dt_terms(
+        self, dt: float, noise_density: tuple[float, float] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(F_dt, Q): the transition's entries that depend on dt only (vdim,vdim) and the discrete process noise
         of one step (vdim,vdim): accel white noise -> dv, dr; gyro white noise -> dtheta, domega; bias random
         walks (the facet error's entries are set in ``propagate``). Cached for the last dt (the IMU period
         rarely changes)."""
-        if self._dt_cache[0] == dt:
+        if self._dt_cache[0] == (dt, noise_density):
             return self._dt_cache[1], self._dt_cache[2]
         o = self.opts
+        accel_density, gyro_density = (
+            (o.accel_noise_density, o.gyro_noise_density) if noise_density is None else noise_density
+        )
         I3 = np.eye(3)
         F = np.eye(self.vdim)
         F[IDX_R, IDX_V] = I3 * dt
@@ -198,8 +216,8 @@ class InverseDepthEkf:
         else:
             F[IDX_BA, IDX_BA] = 0.0
             F[IDX_BG, IDX_BG] = 0.0
-        qa = o.accel_noise_density**2 / dt
-        qg = o.gyro_noise_density**2 / dt
+        qa = accel_density**2 / dt
+        qg = gyro_density**2 / dt
         Q = np.zeros((self.vdim, self.vdim))
         Q[IDX_V, IDX_V] = I3 * (qa * dt * dt)
         Q[IDX_R, IDX_R] = I3 * (qa * 0.25 * dt**4)
@@ -210,7 +228,7 @@ class InverseDepthEkf:
         if o.estimate_imu_bias:
             Q[IDX_BA, IDX_BA] = I3 * (o.accel_bias_walk**2 * dt)
             Q[IDX_BG, IDX_BG] = I3 * (o.gyro_bias_walk**2 * dt)
-        self._dt_cache = (dt, F, Q)
+        self._dt_cache = ((dt, noise_density), F, Q)
         return F, Q
 
     def _flush(self) -> None:

@@ -61,7 +61,7 @@ class EkfOptions:
     # s, a start with no IMU sample yet, or (from the autopilot's attitude) no ATTITUDE sample yet, waits this long
     # after the first frame set for them (the camera up before the autopilot streams); then it starts without:
     # from the IMU's gravity and the configured heading (``initial_yaw_rad``), which the cameras cannot correct,
-    # or propagating as if the vehicle hovered until the IMU comes
+    # or on the constant-velocity motion model until the IMU comes (``imu_hold_max_s``)
     start_wait_s: float = 10.0
     # --- visual measurements ---
     pixel_sigma_px: float = 1.0  # px, SIFT keypoint position noise (per axis): the visible camera's
@@ -161,6 +161,13 @@ class EkfOptions:
     thermal_high_percentile: float = 99.0  # ... and this one to 255 (per frame, robust to hot pixels)
     # --- time handling and health ---
     imu_max_lag_s: float = 0.25  # IMU samples are buffered this long so late frames find them
+    # s, an IMU sample older than this no longer stands for the motion: beyond it (an IMU stream that stops, or has
+    # not started) the filter propagates a constant velocity without rotation, with the motion-model noise below
+    # in place of the IMU's (MonoSLAM's constant-velocity model, Davison et al. 2007). Holding the last sample
+    # instead turned a wobbling lander's rate into degrees of tilt within a second, out of every landmark's gate
+    imu_hold_max_s: float = 0.1
+    no_imu_accel_noise_density: float = 0.5  # m/s^2/sqrt(Hz): velocity sigma 0.5 m/s after a second without
+    no_imu_gyro_noise_density: float = 0.05  # rad/sqrt(s): attitude sigma 0.05 rad (2.9 deg) after a second
     lost_after_frames: int = 5  # consecutive frames with no visual match before the status is LOST
     lost_position_sigma_m: float = 50.0  # m, largest position sigma still reported OK
     seed: int = 0  # landmark sampling RNG

@@ -76,6 +76,9 @@ class SlamCounters:
     stale_frames: int = 0
     late_imu: int = 0
     imu: int = 0
+    steps_without_imu: int = (
+        0  # propagation steps on the motion model, no IMU sample close enough (``_step``)
+    )
     altimeter_updates: int = 0
     altimeter_rejected: int = 0
     altimeter_no_facet: int = 0
@@ -186,11 +189,17 @@ class VisThermalSlam:
             self.t_us = stamp_us
 
     def _step(self, dt: float) -> None:
-        assert self.ekf is not None
-        if self._hold is None:
-            # no IMU yet: assume the vehicle holds its state (hover, no rotation)
+        """Propagate ``dt`` s from ``t_us`` with the held IMU sample; a step that ends more than
+        ``imu_hold_max_s`` after that sample (or with none yet) uses the constant-velocity motion model instead:
+        no rotation, the velocity kept (the specific force that cancels gravity), and the motion's own noise."""
+        assert self.ekf is not None and self.t_us is not None
+        o = self.opts
+        end_us = self.t_us + dt * 1e6
+        if self._hold is None or end_us - self._hold_stamp > o.imu_hold_max_s * 1e6:
+            self.counters.steps_without_imu += 1
             f = -self.ekf.R_world_body.T @ self.ekf.g_world
-            self.ekf.propagate(f, np.zeros(3), dt)
+            density = (o.no_imu_accel_noise_density, o.no_imu_gyro_noise_density)
+            self.ekf.propagate(f, np.zeros(3), dt, density)
         else:
             self.ekf.propagate(self._hold[0], self._hold[1], dt)
 

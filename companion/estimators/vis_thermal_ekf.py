@@ -135,7 +135,8 @@ class VisThermalEkfEstimator:
       waits up to ``options.start_wait_s`` after the first frame set, then takes gravity from the IMU with yaw
       ``initial_yaw_rad``.
     The start waits likewise for the first IMU sample (``waiting_for_imu``), up to ``options.start_wait_s``:
-    without it the filter would propagate as if the vehicle hovered. ``warnings`` says what a start waits for.
+    without it the filter would start on the constant-velocity motion model. ``warnings`` says what a start waits
+    for.
     A LOCAL_POSITION_NED sample older than ``max_local_position_age_s`` at the frame is not used.
     """
 
@@ -144,7 +145,8 @@ class VisThermalEkfEstimator:
     """Longest time (s) IMU / altimeter samples wait for a frame set older than them (``_hold``)."""
     imu_gap_s = 0.5
     """A frame set with no IMU sample this close before it is counted in ``frames_without_imu`` and the
-    status says so (``warnings``): without an IMU the filter propagates as if the vehicle hovered."""
+    status says so (``warnings``): without an IMU the filter propagates a constant velocity with the motion
+    model's noise (``EkfOptions.imu_hold_max_s``)."""
     altimeter_gap_s = 2.0
     """Likewise for the altimeter (``frames_without_altimeter``): without it the scale rests on the landmarks'
     first depths only (out of its range, or DISTANCE_SENSOR not streamed)."""
@@ -346,7 +348,7 @@ class VisThermalEkfEstimator:
                 self._last_imu_us,
                 self.imu_gap_s,
                 "IMU",
-                "the filter propagates as if the vehicle hovered",
+                "the filter carries on at constant velocity, its uncertainty growing",
             ),
             ("altimeter", self._last_alt_us, self.altimeter_gap_s, "ALTIMETER", "no range to hold the scale"),
         ):
@@ -381,7 +383,7 @@ class VisThermalEkfEstimator:
             return "waiting_for_position"
         # the camera up before the autopilot streams (or before it streams the IMU: ArduPilot's RAW_IMU comes
         # when asked, ``deploy/README.md`` section 5): a start now would take the configured heading, which
-        # the cameras cannot correct, or propagate the first seconds as if the vehicle hovered
+        # the cameras cannot correct, or propagate its first seconds on the motion model alone
         missing = [
             name
             for name, absent in (
@@ -398,7 +400,7 @@ class VisThermalEkfEstimator:
             how = (
                 f"from the IMU's gravity and the configured heading, {yaw_deg:.1f} deg, which the cameras cannot correct"
                 if "ATTITUDE" in missing
-                else "propagating as if the vehicle hovered until the IMU comes"
+                else "on the constant-velocity motion model until the IMU comes"
             )
             log.warning(
                 "no %s from the autopilot %.0f s after the first frames: starting without, %s",
