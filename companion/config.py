@@ -311,9 +311,8 @@ class EkfConfig(_Strict):
     # averaged, each carried to it by the IMU's gyro (averages the attitude's sample-to-sample jitter, not a
     # bias); 0 = the nearest sample alone
     initial_attitude_window_s: Annotated[float, Field(ge=0, le=5)] = _EKF.initial_attitude_window_s
-    # with no IMU or no ATTITUDE sample yet at the first frame set, wait this long (s) for them before starting
-    # without (from the IMU's gravity and [estimator] initial_yaw_deg, a heading the cameras cannot correct;
-    # on the constant-velocity motion model until the IMU comes)
+    # with no ATTITUDE sample yet at the first frame set, wait this long (s) for one before starting from the
+    # IMU's gravity and [estimator] initial_yaw_deg (a heading the cameras cannot correct)
     start_wait_s: Annotated[float, Field(ge=0, le=600)] = _EKF.start_wait_s
     # a new landmark's inverse-depth prior: flat ground at the altimeter's height, with this relative sigma
     # (the ground's relief over the height, roughly); raise it over rough ground

@@ -58,10 +58,9 @@ class EkfOptions:
     # s, the daemon's start from the autopilot: its ATTITUDE samples this close to the first frame set averaged,
     # each carried there by the IMU's gyro (``vis_thermal_ekf.start_attitude``); 0 = the nearest sample alone
     initial_attitude_window_s: float = 1.0
-    # s, a start with no IMU sample yet, or (from the autopilot's attitude) no ATTITUDE sample yet, waits this long
-    # after the first frame set for them (the camera up before the autopilot streams); then it starts without:
-    # from the IMU's gravity and the configured heading (``initial_yaw_rad``), which the cameras cannot correct,
-    # or on the constant-velocity motion model until the IMU comes (``imu_hold_max_s``)
+    # s, a start from the autopilot's attitude with no ATTITUDE sample yet (the camera up before the autopilot
+    # streams) waits this long after the first frame set for one; then it starts from the IMU's gravity and the
+    # configured heading (``initial_yaw_rad``), which the cameras cannot correct
     start_wait_s: float = 10.0
     # --- visual measurements ---
     pixel_sigma_px: float = 1.0  # px, SIFT keypoint position noise (per axis): the visible camera's

@@ -133,10 +133,8 @@ class VisThermalEkfEstimator:
       long after the first frame set or the first sample, whichever came later, counted in
       ``waiting_for_attitude``); with no sample at all (the camera up before the autopilot streams) the start
       waits up to ``options.start_wait_s`` after the first frame set, then takes gravity from the IMU with yaw
-      ``initial_yaw_rad``.
-    The start waits likewise for the first IMU sample (``waiting_for_imu``), up to ``options.start_wait_s``:
-    without it the filter would start on the constant-velocity motion model. ``warnings`` says what a start waits
-    for.
+      ``initial_yaw_rad``. ``warnings`` says what a start waits for. It does not wait for the IMU: without one
+      the filter propagates on a constant-velocity motion model (``EkfOptions.imu_hold_max_s``).
     A LOCAL_POSITION_NED sample older than ``max_local_position_age_s`` at the frame is not used.
     """
 
@@ -204,7 +202,6 @@ class VisThermalEkfEstimator:
             "missing_camera": 0,
             "waiting_for_position": 0,
             "waiting_for_attitude": 0,  # frame sets before the ATTITUDE samples to start from (see the class doc)
-            "waiting_for_imu": 0,  # frame sets before the first IMU sample (see the class doc)
             # from the filter's counters, refreshed at each frame set
             "imu_samples": 0,
             "late_imu": 0,
@@ -366,8 +363,7 @@ class VisThermalEkfEstimator:
         """Start the filter at ``stamp_us``; None if started, else the counter saying why not: the initial
         position unknown (``waiting_for_position``), or less than ``initial_attitude_window_s`` of ATTITUDE
         samples to average yet (``waiting_for_attitude``: a replay whose record begins with the first frames,
-        at most that long after the first frame set or sample; none at all, at most ``start_wait_s``), or no
-        IMU sample yet (``waiting_for_imu``, at most ``start_wait_s``)."""
+        at most that long after the first frame set or sample; none at all, at most ``start_wait_s``)."""
         if self._first_frame_us is None:
             self._first_frame_us = stamp_us
         lp = self._local
@@ -381,32 +377,18 @@ class VisThermalEkfEstimator:
         else:
             self.warnings["start"] = "not started: waiting for LOCAL_POSITION_NED"
             return "waiting_for_position"
-        # the camera up before the autopilot streams (or before it streams the IMU: ArduPilot's RAW_IMU comes
-        # when asked, ``deploy/README.md`` section 5): a start now would take the configured heading, which
-        # the cameras cannot correct, or propagate its first seconds on the motion model alone
-        missing = [
-            name
-            for name, absent in (
-                ("IMU", self._last_imu_us is None),
-                ("ATTITUDE", self._rpy0 is None and not self._attitudes),
-            )
-            if absent
-        ]
-        if missing:
+        # the camera up before the autopilot streams: a start now would take the configured heading, which the
+        # cameras cannot correct. (No wait for the IMU: started without it, on the motion model until it comes,
+        # the filter did as well as with it, ``python -m bench ekf_start``.)
+        if self._rpy0 is None and not self._attitudes:
             if stamp_us - self._first_frame_us < self.options.start_wait_s * 1e6:
-                self.warnings["start"] = f"not started: waiting for {' and '.join(missing)}"
-                return "waiting_for_imu" if missing[0] == "IMU" else "waiting_for_attitude"
-            yaw_deg = math.degrees(self._yaw0)
-            how = (
-                f"from the IMU's gravity and the configured heading, {yaw_deg:.1f} deg, which the cameras cannot correct"
-                if "ATTITUDE" in missing
-                else "on the constant-velocity motion model until the IMU comes"
-            )
+                self.warnings["start"] = "not started: waiting for ATTITUDE"
+                return "waiting_for_attitude"
             log.warning(
-                "no %s from the autopilot %.0f s after the first frames: starting without, %s",
-                " or ".join(missing),
+                "no ATTITUDE from the autopilot %.0f s after the first frames: starting from the IMU's gravity and "
+                "the configured heading, %.1f deg, which the cameras cannot correct",
                 self.options.start_wait_s,
-                how,
+                math.degrees(self._yaw0),
             )
         window_us = self.options.initial_attitude_window_s * 1e6
         if (
