@@ -1,4 +1,4 @@
-"""The EKF's hand-over start when the autopilot's IMU or ATTITUDE comes after the first frames.
+"""The EKF's hand-over start when the autopilot's IMU or ATTITUDE comes after the first frames, and an IMU dropout.
 
 ``python -m bench ekf_start [--quick] [--json PATH] [--trials 1] [--trajectories 1,2,..] [--late 2.5]
 [--mode dual] [--workers 2]``
@@ -10,17 +10,21 @@ flight from the filter's prior (``thermal_ekf.BENCH_OPTIONS``), streaming from 2
 pair. Variants, paired on the same flight:
 
 - ``reference``: every autopilot stream there from the start;
-- ``imu_late_*``: the IMU only from ``--late`` s after the first frame pair (ArduPilot sends RAW_IMU once the
-  companion asks for it, ``deploy/README.md`` section 5), the filter started at once (``at_once``:
-  ``EkfOptions.start_wait_s`` 0, what the estimator did before 2026-12-07) or waiting for it (``wait``: the
-  default, 10 s);
+- ``imu_late``: the IMU only from ``--late`` s after the first frame pair (ArduPilot sends RAW_IMU once the
+  companion asks for it, ``deploy/README.md`` section 5); the filter starts at once and propagates on its
+  constant-velocity motion model until the IMU comes (``EkfOptions.imu_hold_max_s``);
 - ``attitude_late_*``: ATTITUDE only from ``--late`` s on, the configured heading 0 (``[estimator]
-  initial_yaw_deg``'s default), likewise.
+  initial_yaw_deg``'s default), the filter started at once (``at_once``: ``EkfOptions.start_wait_s`` 0, what the
+  estimator did before 2026-12-07) or waiting for it (``wait``: the default, 10 s);
+- ``imu_dropout_*``: the IMU silent for ``--late`` s from ``DROPOUT_AT_S`` (60 s) after the first frame pair, the
+  filter propagating on the last sample held (``held``: ``EkfOptions.imu_hold_max_s`` unbounded, what it did
+  before 2026-12-07) or on the constant-velocity motion model from 0.1 s after it (``motion_model``: the
+  default).
 
 Per variant: the mean position error and E (%, slope of the error against distance) over the frames from
 ``--late`` + 1 s on (every variant estimates those), the worst flight's mean error, the frame pairs estimated,
 and the paired difference to the reference with its standard error. Default: the ten trajectories, trial 0
-(about 5 min on two cores); --quick: trajectories 1 and 6.
+(about 7 min on two cores); --quick: trajectories 1 and 6.
 """
 
 from __future__ import annotations
@@ -44,14 +48,17 @@ from companion.estimators.vis_thermal_ekf import VisThermalEkfEstimator  # noqa:
 from companion.geometry import rpy_from_rot  # noqa: E402
 from companion.types import AttitudeSample, LocalPositionSample  # noqa: E402
 
-VARIANTS: dict[str, tuple[str | None, float]] = {
-    "reference": (None, 10.0),
-    "imu_late_at_once": ("imu", 0.0),
-    "imu_late_wait": ("imu", 10.0),
-    "attitude_late_at_once": ("attitude", 0.0),
-    "attitude_late_wait": ("attitude", 10.0),
+VARIANTS: dict[str, tuple[str | None, float, float]] = {
+    "reference": (None, 10.0, 0.1),
+    "imu_late": ("imu", 10.0, 0.1),
+    "attitude_late_at_once": ("attitude", 0.0, 0.1),
+    "attitude_late_wait": ("attitude", 10.0, 0.1),
+    "imu_dropout_held": ("dropout", 10.0, float("inf")),
+    "imu_dropout_motion_model": ("dropout", 10.0, 0.1),
 }
-"""Variant -> (the stream that comes late, EkfOptions.start_wait_s)."""
+"""Variant -> (the stream that comes late or drops out, EkfOptions.start_wait_s, EkfOptions.imu_hold_max_s)."""
+DROPOUT_AT_S = 60.0
+"""The IMU dropout begins this long after the first frame pair."""
 AUTOPILOT_LEAD_S = 2.0
 """The autopilot's streams begin this long before the first frame pair (unless late)."""
 
@@ -73,11 +80,13 @@ def fly(job: tuple[str, int, int, float, str]) -> dict[str, Any]:
     local = [LocalPositionSample(int(t), s.p_world + dp, s.v_world + dv) for t, s in zip(us[::5], st_ap[::5])]
     stamps = np.array([t for t, _ in fl.frames])
     t_late = int(stamps[0] + late_s * 1e6)
+    gap = (int(stamps[0] + DROPOUT_AT_S * 1e6), int(stamps[0] + (DROPOUT_AT_S + late_s) * 1e6))
     scored = stamps >= stamps[0] + (late_s + 1.0) * 1e6
     out: dict[str, Any] = {"name": name, "trial": trial, "seed": seed}
-    for variant, (late, wait_s) in VARIANTS.items():
+    for variant, (late, wait_s, hold_s) in VARIANTS.items():
+        opts = replace(base, seed=seed * 100_003 + trial, mode=mode, sampling="kde")
         est = VisThermalEkfEstimator(
-            replace(base, seed=seed * 100_003 + trial, mode=mode, sampling="kde", start_wait_s=wait_s),
+            replace(opts, start_wait_s=wait_s, imu_hold_max_s=hold_s),
             {"visible": fl.intrinsics, "thermal": fl.intrinsics},
             {"visible": R_BODY_CAM_NADIR, "thermal": R_BODY_CAM_NADIR},
             None,
@@ -85,7 +94,13 @@ def fly(job: tuple[str, int, int, float, str]) -> dict[str, Any]:
         )
         samples: list[Any] = [*local, *fl.altimeter]
         samples += [a for a in attitude if late != "attitude" or a.stamp_us >= t_late]
-        samples += [s for s in fl.imu if late != "imu" or s.stamp_us >= t_late]
+        samples += [
+            s
+            for s in fl.imu
+            if not (
+                late == "imu" and s.stamp_us < t_late or late == "dropout" and gap[0] <= s.stamp_us < gap[1]
+            )
+        ]
         # the daemon's order: every sample stamped at or before a frame pair reaches the estimator before it
         events = sorted(
             [(s.stamp_us, 0, s) for s in samples] + [(t, 1, d) for t, d in fl.frames], key=lambda e: e[:2]
@@ -103,6 +118,7 @@ def fly(job: tuple[str, int, int, float, str]) -> dict[str, Any]:
             "mean_error_m": float(np.mean(err)),
             "E_percent": T.slope_percent(fl.distance_m[keep], err),
             "estimates": len(est_at),
+            "steps_without_imu": est.slam.counters.steps_without_imu,
             "scored_frames": int(keep.sum()),
             "waiting": {k: v for k, v in est.counters.items() if k.startswith("waiting_for")},
         }
@@ -132,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trials", type=int, default=1, help="trials per trajectory (default 1)")
     p.add_argument("--trajectories", type=str, default=None, help="comma-separated names (default all)")
     p.add_argument(
-        "--late", type=float, default=2.5, help="s after the first frame pair the late stream begins"
+        "--late", type=float, default=2.5, help="s a stream comes late, and the IMU dropout's length"
     )
     p.add_argument("--mode", choices=("visible", "thermal", "dual"), default="dual")
     p.add_argument("--workers", type=int, default=2)
@@ -155,8 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     print(table(
         ["variant", "mean err m", "median m", "worst m", "vs reference (paired)", "E %", "estimates"],
         rows,
-        title=f"EKF hand-over start, {a.mode}, a stream {a.late:g} s late: {len(runs)} flights, seed {a.seed}, "
-              f"errors from {a.late + 1:g} s on",
+        title=f"EKF, {a.mode}: a stream {a.late:g} s late at the start, or the IMU {a.late:g} s silent from "
+              f"{DROPOUT_AT_S:g} s; {len(runs)} flights, seed {a.seed}, errors from {a.late + 1:g} s on",
     ))  # fmt: skip
     write_json(
         a.json,
@@ -164,7 +180,8 @@ def main(argv: list[str] | None = None) -> int:
             "benchmark": "ekf_start",
             "quick": a.quick,
             "setup": {"trajectories": names, "trials": a.trials, "seed": a.seed, "late_s": a.late,
-                      "mode": a.mode, "variants": VARIANTS, "autopilot_lead_s": AUTOPILOT_LEAD_S},
+                      "mode": a.mode, "variants": VARIANTS, "autopilot_lead_s": AUTOPILOT_LEAD_S,
+                      "dropout_at_s": DROPOUT_AT_S},
             "variants": s,
             "runs": runs,
         },
