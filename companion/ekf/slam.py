@@ -76,9 +76,8 @@ class SlamCounters:
     stale_frames: int = 0
     late_imu: int = 0
     imu: int = 0
-    steps_without_imu: int = (
-        0  # propagation steps on the motion model, no IMU sample close enough (``_step``)
-    )
+    # propagation steps on the motion model, no IMU sample close enough (``_step``)
+    steps_without_imu: int = 0
     altimeter_updates: int = 0
     altimeter_rejected: int = 0
     altimeter_no_facet: int = 0
