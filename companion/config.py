@@ -301,6 +301,11 @@ class EkfConfig(_Strict):
     estimate_imu_bias: bool = _EKF.estimate_imu_bias
     accel_bias_sigma0: Annotated[float, Field(gt=0)] = _EKF.accel_bias_sigma0  # m/s^2
     gyro_bias_sigma0: Annotated[float, Field(gt=0)] = _EKF.gyro_bias_sigma0  # rad/s
+    # without an IMU sample for imu_hold_max_s (s): a constant-velocity motion model whose noise says how hard
+    # the vehicle may manoeuvre unseen (velocity sigma after a second, m/s; attitude sigma after a second, rad)
+    imu_hold_max_s: Annotated[float, Field(gt=0, le=10)] = _EKF.imu_hold_max_s
+    no_imu_accel_noise_density: Annotated[float, Field(gt=0)] = _EKF.no_imu_accel_noise_density
+    no_imu_gyro_noise_density: Annotated[float, Field(gt=0)] = _EKF.no_imu_gyro_noise_density
     # how well the start is known (the autopilot's LOCAL_POSITION_NED and ATTITUDE at the hand-over, or the
     # configured start), 1 sigma per axis: position m, velocity m/s, roll and pitch rad, yaw rad
     initial_position_sigma_m: Annotated[float, Field(gt=0)] = _EKF.initial_position_sigma_m

@@ -128,6 +128,9 @@ def test_every_ekf_key_reaches_the_filter_options() -> None:
         "detect_scale": 0.75,
         "initial_attitude_window_s": 0.5,
         "start_wait_s": 3.0,
+        "imu_hold_max_s": 0.2,
+        "no_imu_accel_noise_density": 1.0,
+        "no_imu_gyro_noise_density": 0.1,
         "init_rho_rel_sigma": 0.7,
     }
     assert set(changed) | {"pair_tolerance_ms"} == set(EkfConfig.model_fields)  # a new key must join here
