@@ -205,6 +205,7 @@ class VisThermalEkfEstimator:
             # from the filter's counters, refreshed at each frame set
             "imu_samples": 0,
             "late_imu": 0,
+            "steps_without_imu": 0,  # propagation steps on the motion model: no IMU sample close enough
             "stale_frames": 0,
             "altimeter_updates": 0,
             "matches_refused": 0,  # gated matches the 1-point RANSAC refused
@@ -325,6 +326,7 @@ class VisThermalEkfEstimator:
             self.counters.update(
                 imu_samples=c.imu,
                 late_imu=c.late_imu,
+                steps_without_imu=c.steps_without_imu,
                 stale_frames=c.stale_frames,
                 altimeter_updates=c.altimeter_updates,
                 matches_refused=c.ransac_rejected,
