@@ -14,7 +14,7 @@ BENCHES = {
     "renderer": "renderer frame rate",
     "attitude_errors": "terrain SLAM with an autopilot tilt bias or a misaligned camera mount it is not told of",
     "ekf_patch": "EKF-SLAM with and without the patch search for landmarks SIFT missed (paired trials)",
-    "ekf_start": "the EKF's hand-over start when the autopilot's IMU or ATTITUDE comes after the first frames",
+    "ekf_start": "the EKF's start with the autopilot's IMU or ATTITUDE late, and an IMU dropout in flight",
     "recorder": "the daemon's input record: MB and CPU per camera frame, raw against lossless PNG",
     "replay": "recorded Europa flights replayed through the daemon's path (companion replay): accuracy, speed, a lens",
 }
