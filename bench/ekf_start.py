@@ -84,9 +84,16 @@ def fly(job: tuple[str, int, int, float, str]) -> dict[str, Any]:
     scored = stamps >= stamps[0] + (late_s + 1.0) * 1e6
     out: dict[str, Any] = {"name": name, "trial": trial, "seed": seed}
     for variant, (late, wait_s, hold_s) in VARIANTS.items():
-        opts = replace(base, seed=seed * 100_003 + trial, mode=mode, sampling="kde")
+        opts = replace(
+            base,
+            seed=seed * 100_003 + trial,
+            mode=mode,
+            sampling="kde",
+            start_wait_s=wait_s,
+            imu_hold_max_s=hold_s,
+        )
         est = VisThermalEkfEstimator(
-            replace(opts, start_wait_s=wait_s, imu_hold_max_s=hold_s),
+            opts,
             {"visible": fl.intrinsics, "thermal": fl.intrinsics},
             {"visible": R_BODY_CAM_NADIR, "thermal": R_BODY_CAM_NADIR},
             None,
