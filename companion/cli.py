@@ -180,7 +180,9 @@ def cmd_check_autopilot(cfg: CompanionConfig, timeout_s: float) -> int:
     from companion.io.autopilot_params import ERROR
 
     offset = cfg.cameras[estimator_cameras(cfg)[0]].position_in_body_m
-    link = AutopilotLinkAdapter(link_config(cfg), cfg.origin, camera_offset_m=offset)
+    # the check is not a flight: no MAVLink log of it
+    mav_cfg = link_config(cfg).model_copy(update={"tlog": ""})
+    link = AutopilotLinkAdapter(mav_cfg, cfg.origin, camera_offset_m=offset)
     link.link.start()
     sensors: list[Any] = []
     try:
@@ -296,6 +298,8 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
 
     offset = cfg.cameras[estimator_cameras(cfg)[0]].position_in_body_m
     link = AutopilotLinkAdapter(link_config(cfg), cfg.origin, camera_offset_m=offset)
+    if link.link.tlog is not None:
+        log.info("logging the autopilot link's messages in %s (mavlogdump.py reads it)", link.link.tlog.path)
     z = cfg.zenoh
     session = open_session(z.mode, z.connect, z.listen, z.multicast_scouting)
     status_pub = StatusPublisher(session, z.status_key)

@@ -140,6 +140,9 @@ class MavlinkConfig(_Strict):
     # first heard, ask it for its IMU at this rate on this link (MAV_CMD_SET_MESSAGE_INTERVAL: RAW_IMU from
     # ArduPilot, HIGHRES_IMU from PX4); 0 = never ask
     request_imu_hz: Annotated[float, Field(ge=0, le=400)] = 50.0
+    # log every message of this link, both directions, as a MAVLink telemetry log (mavlogdump.py, MAVExplorer
+    # and Mission Planner read it); "{time}" in the path is the start time, ".tlog" is added; "" = off
+    tlog: str = ""
 
     @field_validator("connection")
     @classmethod

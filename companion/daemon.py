@@ -57,6 +57,11 @@ def _record_note(rec: dict[str, Any] | None) -> str:
     return f"  rec {rec.get('mbytes', 0):.0f} MB" + (f" LOST {lost}" if lost else "")
 
 
+def _tlog_note(tlog: dict[str, Any] | None) -> str:
+    """Status-line suffix when the link's MAVLink log (``mavlink.tlog``) failed and stopped."""
+    return "  TLOG STOPPED" if tlog and tlog.get("errors") else ""
+
+
 def _sigma_note(sigma_h_m: float | None) -> str:
     """The estimate's own horizontal 1-sigma (root of the trace of its north-east covariance), if any."""
     if sigma_h_m is None or not math.isfinite(sigma_h_m):
@@ -80,6 +85,7 @@ def format_status_line(st: dict[str, Any]) -> str:
         f"{_params_note(link.get('params_check'))}"
         f"{''.join(f'  {w}' for w in st.get('estimator', {}).get('warnings', {}).values())}"
         f"{_record_note(st.get('inputs_record'))}"
+        f"{_tlog_note(link.get('tlog'))}"
     )
 
 

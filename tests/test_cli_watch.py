@@ -7,6 +7,7 @@ import subprocess
 import sys
 import threading
 import time
+from typing import Any
 
 from netutil import free_tcp_port
 
@@ -49,6 +50,12 @@ def test_status_line_names_what_an_operator_needs() -> None:
     assert line.endswith("AUTOPILOT PARAMS ERROR: VISO_TYPE")
     blind = format_status_line({**STATUS, "estimator": {"warnings": {"imu": "NO IMU for 2.0 s"}}})
     assert blind == line + "  NO IMU for 2.0 s"
+    # the link's MAVLink log: silent while it works, named when the disk refused it
+    link: dict[str, Any] = dict(STATUS["link"])  # type: ignore[call-overload]
+    tlog = {"path": "x.tlog", "messages": 10, "bytes": 400}
+    assert format_status_line({**STATUS, "link": {**link, "tlog": {**tlog, "errors": 0}}}) == line
+    failed = format_status_line({**STATUS, "link": {**link, "tlog": {**tlog, "errors": 1}}})
+    assert failed == line + "  TLOG STOPPED"
 
 
 def test_watch_prints_the_status_lines_of_a_publishing_companion() -> None:

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import pytest
 from netutil import wait_for
+from pymavlink import mavutil
 
 from companion.cli import apply_overrides, cmd_run
 from companion.cli import main as companion_main
@@ -132,6 +133,7 @@ def companion_config(
     estimator: str = "georef",
     estimates_log: str = "",
     record_inputs: str = "",
+    tlog: str = "",
 ):
     cfg = SimConfig(duration_s=60.0)
     s0 = make_trajectory(cfg, ground_m).state_at(0.0)
@@ -147,6 +149,7 @@ def companion_config(
         "daemon.log_level": "warning",
         "daemon.estimates_log": estimates_log,
         "daemon.record_inputs": record_inputs,
+        "mavlink.tlog": tlog,
     }
     return apply_overrides(
         load_config(ROOT / "configs/sim_mars.toml"), [f"{k}={json.dumps(v)}" for k, v in sets.items()], "test"
@@ -244,6 +247,7 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
         case.estimator,
         estimates_log=str(tmp_path / "companion" / "estimates-{time}"),
         record_inputs=str(tmp_path / "inputs") if case.estimator == "terrain_lba" else "",
+        tlog=str(tmp_path / "companion" / "mavlink-{time}"),
     )
     daemon = threading.Thread(target=cmd_run, args=(cfg, stop), daemon=True)
     status: StatusWatch | None = None
@@ -300,6 +304,17 @@ def test_flight_estimates_reach_the_autopilot_and_bad_frames_are_counted(
     assert 0 < len(received) <= len(ours)
     gap = np.min(np.linalg.norm(received[:, None, 1:4] - ours[None, :, 1:4], axis=2), axis=1)
     assert np.max(gap) < 1e-3, f"{np.sum(gap >= 1e-3)} estimates the autopilot got are not in the log"
+    # and the link's MAVLink log, as pymavlink reads it: every estimate sent, and what the autopilot said
+    (tlog,) = (tmp_path / "companion").glob("mavlink-*.tlog")
+    mlog = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    logged: dict[tuple[int, str], list[Any]] = {}
+    while (m := mlog.recv_match()) is not None:
+        logged.setdefault((m.get_srcComponent(), m.get_type()), []).append(m)
+    mlog.close()
+    vpe = logged.get((197, "VISION_POSITION_ESTIMATE"), [])
+    assert len(vpe) == outcomes.count("sent") and st["link"]["tlog"]["errors"] == 0
+    assert np.max(np.abs(np.array([[m.x, m.y, m.z] for m in vpe]) - ours[:, 1:4])) < 1e-3
+    assert len(logged.get((1, "ATTITUDE"), [])) > 10 * case.duration_s  # the autopilot streams it at 50 Hz
     if case.estimator == "terrain_lba":
         # key frames went through the back-end: geo-fixes against the DEM, the adjustment, results applied
         c = st["estimator"]["counters"]

@@ -425,6 +425,80 @@ def test_signing_end_to_end_with_sim() -> None:
             assert sim.codec.signing_counters["rejected"] >= 2
 
 
+def _read_tlog(path: Path) -> list[Any]:
+    """Every message of a .tlog as pymavlink's own reader gives it (``_timestamp``: the logged time, s)."""
+    from pymavlink import mavutil
+
+    mlog = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    out = []
+    while (m := mlog.recv_match()) is not None:
+        if m.get_type() != "BAD_DATA":
+            out.append(m)
+    mlog.close()
+    return out
+
+
+def test_the_link_logs_both_directions_as_a_tlog_pymavlink_reads(tmp_path: Path) -> None:
+    sim, link = make_pair(link_opts={"tlog": str(tmp_path / "logs" / "flight-{time}")})
+    assert link.tlog is not None and link.tlog.path.parent == tmp_path / "logs"
+    assert link.tlog.path.name.startswith("flight-2") and link.tlog.path.suffix == ".tlog"
+    t0 = time.time()
+    sim.start()
+    link.start()
+    try:
+        assert wait_for(lambda: link.timesync.synced, 5.0)
+        stamps = [time.time_ns() // 1000 - 300_000 + 50_000 * i for i in range(3)]
+        for i, s in enumerate(stamps):
+            assert link.send_estimate(estimate(s, p=np.array([1.0 + i, 2.0, -30.0]))) is None
+            time.sleep(0.05)
+        assert wait_for(lambda: len(sim.accepted()) == 3)
+        assert wait_for(lambda: link.received.get("HEARTBEAT", 0) >= 1, 3.0)
+        received_attitudes = link.received.get("ATTITUDE", 0)
+    finally:
+        link.stop()
+        sim.stop()
+    t1 = time.time()
+    msgs = _read_tlog(link.tlog.path)
+    assert len(msgs) == link.tlog.status()["messages"] > 0 and link.tlog.errors == 0
+    ours = [m for m in msgs if (m.get_srcSystem(), m.get_srcComponent()) == (1, 197)]
+    theirs = [m for m in msgs if (m.get_srcSystem(), m.get_srcComponent()) == (1, 1)]
+    # what we sent, as sent
+    vpe = [m for m in ours if m.get_type() == "VISION_POSITION_ESTIMATE"]
+    assert [round(m.x, 3) for m in vpe] == [1.0, 2.0, 3.0]
+    assert [m.usec for m in vpe] == [r.usec for r in sim.accepted()]
+    assert {"HEARTBEAT", "TIMESYNC"} <= {m.get_type() for m in ours}
+    # what the autopilot said, every message of it the link took in (stopping may cut the last ones off)
+    assert len([m for m in theirs if m.get_type() == "ATTITUDE"]) >= received_attitudes > 10
+    assert {"HEARTBEAT", "TIMESYNC", "SYSTEM_TIME"} <= {m.get_type() for m in theirs}
+    # the times are the wall clock's, in order
+    ts = [m._timestamp for m in msgs]
+    assert t0 - 0.01 <= ts[0] and ts[-1] <= t1 + 0.01
+    assert all(b >= a for a, b in zip(ts, ts[1:]))  # two threads write, stamped in turn
+
+
+def test_a_tlog_the_disk_refuses_is_given_up_and_the_link_goes_on(tmp_path: Path) -> None:
+    (tmp_path / "full.tlog").symlink_to("/dev/full")  # every flush fails with ENOSPC, as a full card does
+    sim, link = make_pair(link_opts={"tlog": str(tmp_path / "full.tlog"), "tlog_flush_s": 0.1})
+    sim.start()
+    link.start()
+    try:
+        assert wait_for(lambda: link.timesync.synced, 5.0)
+        assert wait_for(lambda: link.tlog is not None and link.tlog.errors > 0, 3.0)
+        assert link.send_estimate(estimate(time.time_ns() // 1000 - 20_000)) is None
+        assert wait_for(lambda: len(sim.accepted()) == 1)
+        assert link.status()["tlog"]["errors"] == 1  # reported once, then not written to any more
+        assert link.thread_errors == 0
+    finally:
+        link.stop()
+        sim.stop()
+
+
+def test_a_tlog_path_that_cannot_be_created_fails_at_start(tmp_path: Path) -> None:
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(OSError):
+        MavlinkLink(MavlinkOptions(connection="udpout:127.0.0.1:9", tlog=str(tmp_path / "a_file" / "x")))
+
+
 def test_autopilot_reboot_is_detected_and_sync_restarts() -> None:
     sim, link = make_pair(offset_us=600_000_000)
     sim.start()

@@ -33,6 +33,7 @@ def link_options(cfg: MavlinkConfig) -> MavlinkOptions:
         max_vision_rate_hz=max(cfg.max_rate_hz * 1.5, cfg.max_rate_hz + 5.0),
         signing_key=bytes.fromhex(cfg.signing_key_hex) if cfg.signing_key_hex else None,
         request_imu_hz=cfg.request_imu_hz,
+        tlog=cfg.tlog,
     )
 
 

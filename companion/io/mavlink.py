@@ -27,6 +27,7 @@ from scipy.spatial.transform import Rotation
 from companion.constants import DEFAULT_COMPANION_SYSID, GRAVITY_MPS2, MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
 from companion.io.autopilot_params import decode_param_value, flavour_from_heartbeat, params_to_read
 from companion.io.timesync import TimeSync, TimeSyncOptions
+from companion.io.tlog import TlogWriter
 from companion.io.transport import Backoff, Transport, open_transport
 from companion.types import AltimeterSample, AttitudeSample, EstimateStatus, ImuSample, PoseEstimate
 
@@ -266,6 +267,11 @@ class MavlinkOptions:
     for its IMU at this rate on this link (MAV_CMD_SET_MESSAGE_INTERVAL: RAW_IMU from ArduPilot, HIGHRES_IMU
     from PX4), every ``param_retry_s``, ``param_attempts`` times (again after a reboot); 0 = never ask."""
     imu_request_after_s: float = 2.0
+    tlog: str = ""
+    """Log every message of the link, both directions, as a MAVLink ``.tlog`` at this path (``{time}`` = the
+    start time; ``companion.io.tlog``); "" = no log."""
+    tlog_flush_s: float = 1.0
+    """The log is flushed to disk this often (a power cut loses at most this much of it)."""
 
 
 @dataclass
@@ -294,11 +300,14 @@ class MavlinkLink:
         self.options = opts = options or MavlinkOptions()
         self.callbacks = callbacks or LinkCallbacks()
         self.clock_us = clock_us
-        self.transport = transport or open_transport(opts.connection, opts.baudrate, opts.backoff)
         self.codec = MavCodec(
             opts.sysid, opts.compid, opts.signing_key, opts.signing_link_id, opts.accept_unsigned
         )
         self.timesync = TimeSync(opts.timesync)
+        # OSError: a wrong path fails here, at start (before the transport is opened)
+        self.tlog: TlogWriter | None = TlogWriter(opts.tlog) if opts.tlog else None
+        self.transport = transport or open_transport(opts.connection, opts.baudrate, opts.backoff)
+        self._next_tlog_flush = 0.0
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -372,6 +381,8 @@ class MavlinkLink:
             self._thread.join(timeout_s)
             self._thread = None
         self.transport.close()
+        if self.tlog is not None:
+            self.tlog.close()
 
     def __enter__(self) -> MavlinkLink:
         self.start()
@@ -449,15 +460,19 @@ class MavlinkLink:
             "imu_requests": self.imu_requests,
             "imu_request_result": self.imu_request_result,
             "params_read": f"{sum(n in self.params for n in self._param_names)}/{len(self._param_names)}",
+            "tlog": None if self.tlog is None else self.tlog.status(),
         }
 
     # --- sending --------------------------------------------------------------------------------
     def send_message(self, msg: Any) -> bool:
         """Encode and write one pymavlink message; True when handed to the transport."""
-        ok = self.transport.write(self.codec.encode(msg))
+        data = self.codec.encode(msg)
+        ok = self.transport.write(data)
         if ok:
             name = msg.get_type()
             self.sent[name] = self.sent.get(name, 0) + 1
+            if self.tlog is not None:
+                self.tlog.write(data)
         return ok
 
     def send_heartbeat(self) -> bool:
@@ -649,8 +664,13 @@ class MavlinkLink:
         data = self.transport.read(self.options.read_timeout_s)
         if data:
             for msg in self.codec.decode(data):
+                if self.tlog is not None:
+                    self.tlog.write(msg.get_msgbuf())
                 self._handle(msg)
         mono = time.monotonic()
+        if self.tlog is not None and mono >= self._next_tlog_flush:
+            self._next_tlog_flush = mono + self.options.tlog_flush_s
+            self.tlog.flush()
         self._maybe_request_imu(mono)
         if self.transport.stats.connects != self._seen_connects:
             # (Re)connected: introduce ourselves and re-sync at once instead of at the next period.
