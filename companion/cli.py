@@ -88,6 +88,16 @@ def cmd_check(path: str, sets: list[str]) -> int:
     print(f"  zenoh {cfg.zenoh.mode} connect {cfg.zenoh.connect} listen {cfg.zenoh.listen}")
     if cfg.dem is not None:
         print(f"  dem {cfg.dem.path}")
+    records = [
+        f"{what} {path}"
+        for what, path in (
+            ("estimates", cfg.daemon.estimates_log),
+            ("inputs", cfg.daemon.record_inputs),
+            ("mavlink", cfg.mavlink.tlog),
+        )
+        if path
+    ]
+    print(f"  records: {'; '.join(records) if records else 'none'}")
     return 0
 
 
