@@ -255,6 +255,20 @@ def test_cli_exits_2_with_a_clear_message(tmp_path: Path) -> None:
     assert r.returncode == 2 and "not valid TOML" in r.stderr
 
 
+def test_check_config_names_the_records_it_turns_on(capsys: pytest.CaptureFixture[str]) -> None:
+    from companion.cli import cmd_check
+
+    path = str(ROOT / "configs" / "vehicle_serial_geotiff.toml")
+    assert cmd_check(path, []) == 0
+    line = capsys.readouterr().out.splitlines()[-1]
+    assert line == (
+        "  records: estimates /var/lib/companion/flights/estimates-{time}; "
+        "mavlink /var/lib/companion/flights/mavlink-{time}"
+    )
+    assert cmd_check(path, ['daemon.estimates_log=""', 'mavlink.tlog=""']) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "  records: none"
+
+
 def test_opencv_threads_from_the_config() -> None:
     import cv2
 
