@@ -62,6 +62,14 @@ def _tlog_note(tlog: dict[str, Any] | None) -> str:
     return "  TLOG STOPPED" if tlog and tlog.get("errors") else ""
 
 
+def _clock_note(st: dict[str, Any]) -> str:
+    """Status-line suffix once the companion's clock has stepped (``ClockWatch``): how often, the last step."""
+    n = st.get("clock_steps") or 0
+    if not n:
+        return ""
+    return f"  CLOCK STEPPED {st.get('clock_step_s', 0.0):+.1f} s" + (f" ({n} steps)" if n > 1 else "")
+
+
 def _sigma_note(sigma_h_m: float | None) -> str:
     """The estimate's own horizontal 1-sigma (root of the trace of its north-east covariance), if any."""
     if sigma_h_m is None or not math.isfinite(sigma_h_m):
@@ -86,6 +94,7 @@ def format_status_line(st: dict[str, Any]) -> str:
         f"{''.join(f'  {w}' for w in st.get('estimator', {}).get('warnings', {}).values())}"
         f"{_record_note(st.get('inputs_record'))}"
         f"{_tlog_note(link.get('tlog'))}"
+        f"{_clock_note(st)}"
     )
 
 
@@ -183,6 +192,34 @@ class LatencyWindow:
         return float(np.percentile(a, 50)), float(np.percentile(a, 99))
 
 
+class ClockWatch:
+    """Notices the companion's clock stepping (settimeofday: an NTP client's step, a GCS setting the time).
+
+    Frame stamps, the autopilot's time sync and every record are in the wall clock, so a step mid-flight moves
+    them all at once: a step back makes the cameras' stamps run backwards (each frame refused until the clock
+    is past the last one again), a step forward makes the estimator see a gap of the step's length. Nothing here
+    can undo that; it is detected so that the operator is told why. Pure: the caller passes both clocks.
+    On Linux, CLOCK_MONOTONIC is slewed with the wall clock (NTP frequency corrections move both), so their
+    difference moves only when the wall clock is stepped."""
+
+    def __init__(self, threshold_us: int = 100_000) -> None:
+        self.threshold_us = threshold_us
+        self._offset_us: int | None = None
+        self.steps = 0
+        self.last_step_us = 0
+        """The last step's size (wall clock minus its expected value, us; negative: back)."""
+
+    def check(self, wall_us: int, mono_us: int) -> int | None:
+        """The step in microseconds since the last call, when there was one; else None."""
+        offset = wall_us - mono_us
+        prev, self._offset_us = self._offset_us, offset
+        if prev is None or abs(offset - prev) <= self.threshold_us:
+            return None
+        self.steps += 1
+        self.last_step_us = offset - prev
+        return self.last_step_us
+
+
 class Daemon:
     """Runs one estimator between a frame hand-off and an autopilot link."""
 
@@ -210,6 +247,8 @@ class Daemon:
         self.frame_counters = frame_counters or (lambda: {})
         self.counters = DaemonCounters()
         self.latency = LatencyWindow()
+        self.clock = ClockWatch()
+        self.clock.check(now_us(), time.monotonic_ns() // 1000)
         self._inbox: deque[Sample] = deque()
         self._inbox_size = inbox_size
         self._inbox_lock = threading.Lock()
@@ -341,6 +380,14 @@ class Daemon:
 
     # -- health ------------------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
+        step = self.clock.check(now_us(), time.monotonic_ns() // 1000)
+        if step is not None:
+            log.error(
+                "the companion's clock stepped by %+.3f s: frame stamps and the autopilot's time sync jump with it "
+                "and the estimates may be lost until the estimator recovers; keep the clock from stepping in flight "
+                "(deploy/README.md, section 2)",
+                step * 1e-6,
+            )
         h = self.handoff.counters
         p50, p99 = self.latency.percentiles()
         t = time.monotonic()
@@ -375,6 +422,9 @@ class Daemon:
             "estimates_log": None if self.estimate_log is None else self.estimate_log.status(),
             "inputs_record": None if self.input_recorder is None else self.input_recorder.status(),
             "estimator": estimator_report(self.estimator),
+            # wall-clock steps seen since start, and the last one's size (s)
+            "clock_steps": self.clock.steps,
+            "clock_step_s": self.clock.last_step_us * 1e-6,
         }
 
     def status_line(self, st: dict[str, Any] | None = None) -> str:
