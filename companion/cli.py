@@ -273,6 +273,7 @@ def configure_opencv(threads: int) -> None:
 
 def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
     """Run the daemon until SIGINT/SIGTERM (or ``stop`` is set). Returns the exit code."""
+    from companion.clock import CompanionClock
     from companion.daemon import Daemon
     from companion.factory import build_estimator
     from companion.handoff import FrameHandoff
@@ -307,7 +308,9 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
         log.info("recording the estimator's inputs in %s (companion replay reads it)", recorder.path)
 
     offset = cfg.cameras[estimator_cameras(cfg)[0]].position_in_body_m
-    link = AutopilotLinkAdapter(link_config(cfg), cfg.origin, camera_offset_m=offset)
+    # one time for the frames, the link and the records, without the wall clock's steps
+    clock = CompanionClock()
+    link = AutopilotLinkAdapter(link_config(cfg), cfg.origin, camera_offset_m=offset, clock_us=clock.now_us)
     if link.link.tlog is not None:
         log.info("logging the autopilot link's messages in %s (mavlogdump.py reads it)", link.link.tlog.path)
     z = cfg.zenoh
@@ -325,6 +328,8 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
             max_future_us=int(d.max_future_ms * 1000), max_age_us=int(d.max_frame_age_ms * 1000)
         ),
         sink=handoff.put,
+        clock_us=clock.now_us,
+        stamp_from_wall=clock.from_wall,
     )
 
     def frame_counters() -> dict[str, Any]:
@@ -349,6 +354,7 @@ def cmd_run(cfg: CompanionConfig, stop: threading.Event | None = None) -> int:
         estimate_log=estimate_log,
         input_recorder=recorder,
         prepare=frame_undistorter({c: cfg.cameras[c].undistorter() for c in estimator.cameras}),
+        clock=clock,
     )
 
     def on_signal(signum: int, _frame: object) -> None:

@@ -23,6 +23,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from companion.clock import CompanionClock
 from companion.handoff import FrameHandoff
 from companion.types import (
     AltimeterSample,
@@ -63,11 +64,11 @@ def _tlog_note(tlog: dict[str, Any] | None) -> str:
 
 
 def _clock_note(st: dict[str, Any]) -> str:
-    """Status-line suffix once the companion's clock has stepped (``ClockWatch``): how often, the last step."""
+    """Status-line suffix once the wall clock has been stepped (``CompanionClock``): the last step, how many."""
     n = st.get("clock_steps") or 0
     if not n:
         return ""
-    return f"  CLOCK STEPPED {st.get('clock_step_s', 0.0):+.1f} s" + (f" ({n} steps)" if n > 1 else "")
+    return f"  clock stepped {st.get('clock_step_s', 0.0):+.1f} s" + (f" ({n} steps)" if n > 1 else "")
 
 
 def _sigma_note(sigma_h_m: float | None) -> str:
@@ -117,11 +118,6 @@ def estimator_report(estimator: Estimator) -> dict[str, Any]:
         for k in ("counters", "no_fix_reasons", "warnings")
         if isinstance(v := getattr(estimator, k, None), dict)
     }
-
-
-def now_us() -> int:
-    """The companion clock: Unix time in microseconds, the clock ROS 2 header stamps use."""
-    return time.time_ns() // 1000
 
 
 class AutopilotLink(Protocol):
@@ -192,34 +188,6 @@ class LatencyWindow:
         return float(np.percentile(a, 50)), float(np.percentile(a, 99))
 
 
-class ClockWatch:
-    """Notices the companion's clock stepping (settimeofday: an NTP client's step, a GCS setting the time).
-
-    Frame stamps, the autopilot's time sync and every record are in the wall clock, so a step mid-flight moves
-    them all at once: a step back makes the cameras' stamps run backwards (each frame refused until the clock
-    is past the last one again), a step forward makes the estimator see a gap of the step's length. Nothing here
-    can undo that; it is detected so that the operator is told why. Pure: the caller passes both clocks.
-    On Linux, CLOCK_MONOTONIC is slewed with the wall clock (NTP frequency corrections move both), so their
-    difference moves only when the wall clock is stepped."""
-
-    def __init__(self, threshold_us: int = 100_000) -> None:
-        self.threshold_us = threshold_us
-        self._offset_us: int | None = None
-        self.steps = 0
-        self.last_step_us = 0
-        """The last step's size (wall clock minus its expected value, us; negative: back)."""
-
-    def check(self, wall_us: int, mono_us: int) -> int | None:
-        """The step in microseconds since the last call, when there was one; else None."""
-        offset = wall_us - mono_us
-        prev, self._offset_us = self._offset_us, offset
-        if prev is None or abs(offset - prev) <= self.threshold_us:
-            return None
-        self.steps += 1
-        self.last_step_us = offset - prev
-        return self.last_step_us
-
-
 class Daemon:
     """Runs one estimator between a frame hand-off and an autopilot link."""
 
@@ -237,6 +205,7 @@ class Daemon:
         estimate_log: EstimateSink | None = None,
         input_recorder: InputSink | None = None,
         prepare: Callable[[dict[str, Frame]], dict[str, Frame]] | None = None,
+        clock: CompanionClock | None = None,
     ) -> None:
         self.estimator = estimator
         self.handoff = handoff
@@ -247,8 +216,8 @@ class Daemon:
         self.frame_counters = frame_counters or (lambda: {})
         self.counters = DaemonCounters()
         self.latency = LatencyWindow()
-        self.clock = ClockWatch()
-        self.clock.check(now_us(), time.monotonic_ns() // 1000)
+        self.clock = clock or CompanionClock()
+        self._clock_steps_seen = 0
         self._inbox: deque[Sample] = deque()
         self._inbox_size = inbox_size
         self._inbox_lock = threading.Lock()
@@ -273,7 +242,7 @@ class Daemon:
             self._inbox.append(sample)
             # arrival time taken under the inbox lock: a sample recorded as arriving before a drain's time
             # is one that drain took (the recording then replays in the order the estimator saw)
-            arrival_us = now_us()
+            arrival_us = self.clock.now_us()
         if self.input_recorder is not None:
             self.input_recorder.put(sample, arrival_us)
 
@@ -282,7 +251,7 @@ class Daemon:
         with self._inbox_lock:
             items = list(self._inbox)
             self._inbox.clear()
-            drained_us = now_us()
+            drained_us = self.clock.now_us()
         for s in sorted(items, key=lambda s: s.stamp_us):
             feed_sample(self.estimator, s)
         return drained_us
@@ -375,18 +344,21 @@ class Daemon:
             return reason
         self._last_sent_stamp_us = est.stamp_us
         capture_us = min(f.stamp_us for f in frames.values())
-        self.latency.add((now_us() - capture_us) / 1000.0)
+        self.latency.add((self.clock.now_us() - capture_us) / 1000.0)
         return "sent"
 
     # -- health ------------------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
-        step = self.clock.check(now_us(), time.monotonic_ns() // 1000)
-        if step is not None:
-            log.error(
-                "the companion's clock stepped by %+.3f s: frame stamps and the autopilot's time sync jump with it "
-                "and the estimates may be lost until the estimator recovers; keep the clock from stepping in flight "
-                "(deploy/README.md, section 2)",
-                step * 1e-6,
+        clk = self.clock
+        clk.now_us()  # notices a step even when no frame or message has come since
+        if clk.steps != self._clock_steps_seen:
+            self._clock_steps_seen = clk.steps
+            log.warning(
+                "the wall clock was stepped by %+.3f s: the companion's time goes on without the step (its records "
+                "are now %.3f s behind the wall clock; frames stamped across the step are refused); keep the clock "
+                "from stepping in flight (deploy/README.md, section 2)",
+                clk.last_step_us * 1e-6,
+                clk.correction_us * 1e-6,
             )
         h = self.handoff.counters
         p50, p99 = self.latency.percentiles()
@@ -422,9 +394,10 @@ class Daemon:
             "estimates_log": None if self.estimate_log is None else self.estimate_log.status(),
             "inputs_record": None if self.input_recorder is None else self.input_recorder.status(),
             "estimator": estimator_report(self.estimator),
-            # wall-clock steps seen since start, and the last one's size (s)
-            "clock_steps": self.clock.steps,
-            "clock_step_s": self.clock.last_step_us * 1e-6,
+            # wall-clock steps taken out of the companion's time since start, the last one's size and their sum (s)
+            "clock_steps": clk.steps,
+            "clock_step_s": clk.last_step_us * 1e-6,
+            "clock_behind_wall_s": clk.correction_us * 1e-6,
         }
 
     def status_line(self, st: dict[str, Any] | None = None) -> str:

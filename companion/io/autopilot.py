@@ -16,7 +16,7 @@ from typing import Any
 from companion.config import MavlinkConfig, OriginConfig
 from companion.geometry import rot_from_rpy
 from companion.io.autopilot_params import ERROR, WARNING, Finding, check_params, worst
-from companion.io.mavlink import LinkCallbacks, LocalPositionNed, MavlinkLink, MavlinkOptions
+from companion.io.mavlink import LinkCallbacks, LocalPositionNed, MavlinkLink, MavlinkOptions, wall_clock_us
 from companion.types import LocalPositionSample, PoseEstimate
 
 log = logging.getLogger("companion.autopilot")
@@ -46,18 +46,22 @@ class AutopilotLinkAdapter:
         origin: OriginConfig | None = None,
         link: MavlinkLink | None = None,
         camera_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        clock_us: Callable[[], int] | None = None,
     ):
         """camera_offset_m: the camera's position in the body frame (FRD, m) as configured, compared with
-        the autopilot's VISO_POS_* / EKF2_EV_POS_*."""
+        the autopilot's VISO_POS_* / EKF2_EV_POS_*. clock_us: the link's clock (the daemon's
+        ``CompanionClock.now_us``; None: the wall clock)."""
         self.cfg = cfg
         self.origin = origin
         self.camera_offset_m = camera_offset_m
         self.findings: list[Finding] | None = None
         """The parameter check, once the parameters are read (again after an autopilot reboot)."""
         self._callbacks = LinkCallbacks(on_autopilot_reset=self._on_reset)
-        self.link = link or MavlinkLink(link_options(cfg), self._callbacks)
-        if link is not None:
+        if link is None:
+            link = MavlinkLink(link_options(cfg), self._callbacks, clock_us=clock_us or wall_clock_us)
+        else:
             link.callbacks.on_autopilot_reset = self._on_reset
+        self.link = link
         self.reset_offset = 0
         self._next_origin_try = 0.0
         self.origin_sets_sent = 0

@@ -8,6 +8,7 @@ frame overwritten before the daemon took it counts as dropped; nothing queues wi
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import threading
@@ -120,6 +121,8 @@ class FrameSubscriber:
     sink: where decoded frames go instead of the slot (e.g. the daemon's ``FrameHandoff.put``);
     None keeps them in ``self.slot``.
     stamp_gate: factory for one StampGate per camera (None: default gate).
+    clock_us: the gate's clock; stamp_from_wall: how a frame's wall-clock stamp becomes a stamp in that clock
+    (the daemon's ``CompanionClock.from_wall``, which takes out the wall clock's steps; None: as it is).
     """
 
     def __init__(
@@ -130,10 +133,12 @@ class FrameSubscriber:
         stamp_gate: Callable[[], StampGate] | None = None,
         clock_us: Callable[[], int] = wall_clock_us,
         sink: Callable[[Frame], object] | None = None,
+        stamp_from_wall: Callable[[int], int] | None = None,
     ) -> None:
         self.slot: LatestSlot[Frame] = slot if slot is not None else LatestSlot()
         self._sink = sink
         self.clock_us = clock_us
+        self.stamp_from_wall = stamp_from_wall
         self.topics = {
             name: topic if isinstance(topic, CameraTopic) else CameraTopic(topic)
             for name, topic in cameras.items()
@@ -165,6 +170,8 @@ class FrameSubscriber:
                     counters.count_error("internal")
                 log.exception("camera %s: unexpected decode failure: %s", camera, exc)
                 return
+            if self.stamp_from_wall is not None:
+                frame = dataclasses.replace(frame, stamp_us=self.stamp_from_wall(frame.stamp_us))
             with self._lock:
                 reason = self._gates[camera].check(frame.stamp_us, self.clock_us())
                 if reason is not None:
