@@ -49,16 +49,14 @@ class TlogWriter:
         self.errors = 0
         """Writes or flushes that failed; after the first the log is closed and nothing more is written."""
 
-    def write(self, msgbuf: bytes, usec: int | None = None) -> None:
-        """One message's wire bytes, at ``usec`` (Unix epoch, microseconds); by default now, read under the
-        writer's lock so that the log is in time order whichever thread writes."""
+    def write(self, msgbuf: bytes) -> None:
+        """One message's wire bytes, stamped with the wall clock now (the format's readers expect Unix time),
+        read under the writer's lock so that the log is in time order whichever thread writes."""
         with self._lock:
             if self._f is None:
                 return
-            if usec is None:
-                usec = time.time_ns() // 1000
             try:
-                self._f.write(_HEADER.pack(max(0, int(usec))) + msgbuf)
+                self._f.write(_HEADER.pack(time.time_ns() // 1000) + msgbuf)
             except OSError as exc:
                 self._fail(exc)
                 return
