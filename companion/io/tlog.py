@@ -13,6 +13,7 @@ A write that fails (disk full, card pulled) is counted and logged once; the link
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import struct
 import threading
@@ -89,10 +90,8 @@ class TlogWriter:
             log.error("MAVLink log %s: %s; no more of the link's traffic is logged", self.path, exc)
         f, self._f = self._f, None
         if f is not None:
-            try:
+            with contextlib.suppress(OSError):  # already failed and reported; its buffer is lost either way
                 f.close()
-            except OSError:
-                pass  # already failed and reported; its buffer is lost either way
 
     def status(self) -> dict[str, Any]:
         return {"path": str(self.path), "messages": self.messages, "bytes": self.bytes, "errors": self.errors}
